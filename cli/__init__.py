@@ -1,0 +1,1 @@
+"""Command-line interface: parsing only. Everything else lives in ``vo``."""

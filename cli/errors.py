@@ -1,0 +1,20 @@
+"""Turn library exceptions into one-line click errors (non-zero exit, no traceback)."""
+
+from __future__ import annotations
+
+import contextlib
+
+import click
+
+from vo.errors import VOError
+
+
+@contextlib.contextmanager
+def user_errors():
+    """Re-raise our exceptions (and missing files) as ``click.ClickException``."""
+    try:
+        yield
+    except VOError as exc:
+        raise click.ClickException(str(exc)) from None
+    except FileNotFoundError as exc:
+        raise click.ClickException(f"{exc.filename}: no such file or directory") from None
