@@ -35,6 +35,9 @@ class RunConfig:
     min_parallax_px: float = 1.0
     min_flow_px: float = 5.0
     min_inliers: int = 100
+    ransac_method: str = "ransac"
+    depth_fusion: bool = True
+    depth_decay: float = 0.8
     # outputs
     rerun: Path | None = None
     rerun_spawn: bool = False

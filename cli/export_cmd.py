@@ -1,0 +1,63 @@
+"""``trianflow-vo export``: write flow.onnx and depth.onnx from a checkpoint (or random weights)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from cli.errors import user_errors
+
+
+def _parse_size(ctx, param, value):
+    if value is None:
+        return None
+    try:
+        h, w = (int(v) for v in value.lower().split("x"))
+    except ValueError:
+        raise click.BadParameter(f"{value!r} is not HxW (e.g. 256x832)") from None
+    if h <= 0 or w <= 0 or h % 64 or w % 64:
+        raise click.BadParameter(f"{value!r}: both sides must be positive multiples of 64")
+    return h, w
+
+
+@click.command("export")
+@click.option("--checkpoint", type=click.Path(dir_okay=False, path_type=Path),
+              help="Checkpoint file (trianflow-vo format, see models/checkpoint.py).")
+@click.option("--random-init", is_flag=True, help="Export freshly initialised networks (for testing).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of --random-init and of the check input.")
+@click.option("--size", callback=_parse_size, metavar="HxW",
+              help="Fixed input size of the exported graphs. Default: the checkpoint's input size "
+                   "(256x832 with --random-init).")
+@click.option("--out-dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Directory for flow.onnx and depth.onnx.")
+def export(checkpoint, random_init, seed, size, out_dir):
+    """Export flow and depth networks to ONNX and check them against torch."""
+    if (checkpoint is None) == (not random_init):
+        raise click.UsageError("give exactly one of --checkpoint CKPT or --random-init")
+    with user_errors():
+        try:
+            import torch  # noqa: F401
+        except ImportError:
+            from vo.errors import DependencyError
+
+            raise DependencyError("export needs torch: pip install 'trianflow-vo[torch]'") from None
+        import warnings
+
+        from models.checkpoint import DEFAULT_SIZE, checkpoint_from_dict, load_checkpoint, random_checkpoint
+        from models.export import export_checkpoint
+
+        if random_init:
+            ckpt = checkpoint_from_dict(random_checkpoint(seed, size or DEFAULT_SIZE), "<random-init>")
+        else:
+            ckpt = load_checkpoint(checkpoint)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
+                results = export_checkpoint(ckpt, out_dir, size, seed)
+            except ValueError as exc:  # size not accepted by a network
+                raise click.UsageError(str(exc)) from None
+        for name, res in results.items():
+            worst = max(res["max_abs_diff"].values())
+            detail = ", ".join(f"{k} {v:.2e}" for k, v in res["max_abs_diff"].items())
+            click.echo(f"{name}: {res['path']}  max |onnxruntime - torch| = {worst:.2e} ({detail})")

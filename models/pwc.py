@@ -1,0 +1,236 @@
+"""PWC-Net optical flow (Sun et al., CVPR 2018), written for export to ONNX.
+
+Structure, coarse to fine:
+
+* feature pyramid: per level two 3x3 convolutions (the first with stride 2) and
+  leaky ReLU 0.1; ``pyramid_channels[i]`` channels at 1/2**(i+1) resolution;
+* at every decoded level ``l`` (coarsest first): the second image's features are
+  warped by the upsampled flow of level ``l+1`` (``grid_sample`` bilinear,
+  ``align_corners=True``, zero padding), a cost volume is built with a local search
+  range ``d`` (``(2d+1)**2`` channels, mean over feature channels of shifted
+  products, followed by leaky ReLU), and a densely connected flow estimator
+  predicts a flow residual from ``[cost volume, features of image 1, upsampled flow]``;
+* at the output level a context network of dilated convolutions (1, 2, 4, 8, 16, 1)
+  refines the flow from the estimator's last features.
+
+Every flow in this module is in pixels of the resolution of the level it lives at:
+``flows[0]`` (the output level, 1/4 by default) is upsampled by bilinear
+interpolation and multiplied by ``2**output_level`` to give flow in input pixels.
+Upsampling between levels is bilinear (x2 on the grid, x2 on the values).
+
+Input: a pair of normalised images ``(N, 3, H, W)`` with ``H`` and ``W`` multiples of
+``2**len(pyramid_channels)`` (64 by default). The cost volume uses only pad, slice,
+multiply and mean, so the exported graph needs no custom operator.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+@dataclass(frozen=True)
+class PWCConfig:
+    """Constructor sizes of :class:`PWCNet` (stored in checkpoints). Defaults = the paper."""
+
+    pyramid_channels: tuple[int, ...] = (16, 32, 64, 96, 128, 192)
+    estimator_channels: tuple[int, ...] = (128, 128, 96, 64, 32)
+    context_channels: tuple[int, ...] = (128, 128, 128, 96, 64, 32)
+    context_dilations: tuple[int, ...] = (1, 2, 4, 8, 16, 1)
+    search_range: int = 4
+    output_level: int = 2  # finest decoded level: flow at 1/2**output_level
+
+    def to_dict(self) -> dict:
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "PWCConfig":
+        known = {f for f in cls.__dataclass_fields__}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown PWC-Net config keys: {sorted(unknown)}")
+        return cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()})
+
+
+def _conv(cin: int, cout: int, stride: int = 1, dilation: int = 1, act: bool = True) -> nn.Module:
+    conv = nn.Conv2d(cin, cout, 3, stride=stride, padding=dilation, dilation=dilation)
+    if not act:
+        return conv
+    return nn.Sequential(conv, nn.LeakyReLU(0.1))
+
+
+def warp(feat: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
+    """Sample ``feat`` ``(N, C, H, W)`` at ``x + flow(x)``; ``flow`` ``(N, 2, H, W)`` in pixels.
+
+    Bilinear, ``align_corners=True`` (pixel centres at -1 and +1 for the first and
+    last column), zeros outside the image.
+    """
+    n, _, h, w = feat.shape
+    ys = torch.arange(h, dtype=feat.dtype, device=feat.device).view(1, h, 1).expand(1, h, w)
+    xs = torch.arange(w, dtype=feat.dtype, device=feat.device).view(1, 1, w).expand(1, h, w)
+    x = xs + flow[:, 0]
+    y = ys + flow[:, 1]
+    gx = x * (2.0 / max(w - 1, 1)) - 1.0
+    gy = y * (2.0 / max(h - 1, 1)) - 1.0
+    grid = torch.stack((gx, gy), dim=3)
+    return F.grid_sample(feat, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+
+
+def cost_volume(f1: torch.Tensor, f2: torch.Tensor, search_range: int) -> torch.Tensor:
+    """Correlation ``(N, (2d+1)**2, H, W)`` of ``f1`` with ``f2`` shifted by ``(dx, dy)``
+    in ``[-d, d]**2`` (dy major): ``mean_c f1[c, y, x] * f2[c, y+dy, x+dx]``, zero outside."""
+    d = search_range
+    _, _, h, w = f1.shape
+    f2p = F.pad(f2, (d, d, d, d))
+    out = []
+    for dy in range(2 * d + 1):
+        rows = f2p[:, :, dy:dy + h, :]
+        for dx in range(2 * d + 1):
+            out.append((f1 * rows[:, :, :, dx:dx + w]).mean(dim=1, keepdim=True))
+    return torch.cat(out, dim=1)
+
+
+def upsample_flow(flow: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """Bilinear upsampling of a flow field to ``size`` with values scaled by the size ratio."""
+    h, w = flow.shape[2:]
+    up = F.interpolate(flow, size=size, mode="bilinear", align_corners=False)
+    sx = size[1] / w
+    sy = size[0] / h
+    if sx == sy:
+        return up * sx
+    return torch.cat((up[:, :1] * sx, up[:, 1:] * sy), dim=1)
+
+
+class FeaturePyramid(nn.Module):
+    def __init__(self, channels: tuple[int, ...]):
+        super().__init__()
+        layers = []
+        cin = 3
+        for c in channels:
+            layers.append(nn.Sequential(_conv(cin, c, stride=2), _conv(c, c)))
+            cin = c
+        self.levels = nn.ModuleList(layers)
+
+    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """Features at levels 1..L (index 0 = 1/2 resolution)."""
+        feats = []
+        for layer in self.levels:
+            x = layer(x)
+            feats.append(x)
+        return feats
+
+
+class DenseEstimator(nn.Module):
+    """Densely connected flow estimator: each conv sees all earlier outputs."""
+
+    def __init__(self, cin: int, channels: tuple[int, ...]):
+        super().__init__()
+        convs = []
+        c = cin
+        for cout in channels:
+            convs.append(_conv(c, cout))
+            c += cout
+        self.convs = nn.ModuleList(convs)
+        self.predict = _conv(c, 2, act=False)
+        self.out_channels = c
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        for conv in self.convs:
+            x = torch.cat((x, conv(x)), dim=1)
+        return x, self.predict(x)
+
+
+class ContextNetwork(nn.Module):
+    def __init__(self, cin: int, channels: tuple[int, ...], dilations: tuple[int, ...]):
+        super().__init__()
+        if len(channels) != len(dilations):
+            raise ValueError("context_channels and context_dilations differ in length")
+        layers = []
+        c = cin
+        for cout, dil in zip(channels, dilations):
+            layers.append(_conv(c, cout, dilation=dil))
+            c = cout
+        layers.append(_conv(c, 2, act=False))
+        self.net = nn.Sequential(*layers)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x)
+
+
+class PWCNet(nn.Module):
+    """PWC-Net. ``forward(img1, img2)`` returns flows 1 -> 2 at every decoded level,
+    finest first: ``flows[k]`` is ``(N, 2, H / 2**(output_level+k), W / 2**(output_level+k))``
+    in pixels of that level. :meth:`full_flow` gives the flow in input pixels."""
+
+    def __init__(self, config: PWCConfig | None = None):
+        super().__init__()
+        cfg = config or PWCConfig()
+        if not 1 <= cfg.output_level <= len(cfg.pyramid_channels):
+            raise ValueError(f"output_level must be in [1, {len(cfg.pyramid_channels)}]")
+        self.config = cfg
+        self.pyramid = FeaturePyramid(cfg.pyramid_channels)
+        n_cost = (2 * cfg.search_range + 1) ** 2
+        estimators = []
+        # decoded levels, coarsest first: L, L-1, ..., output_level
+        self.levels = list(range(len(cfg.pyramid_channels), cfg.output_level - 1, -1))
+        for lvl in self.levels:
+            c_feat = cfg.pyramid_channels[lvl - 1]
+            estimators.append(DenseEstimator(n_cost + c_feat + 2, cfg.estimator_channels))
+        self.estimators = nn.ModuleList(estimators)
+        self.context = ContextNetwork(estimators[-1].out_channels + 2, cfg.context_channels,
+                                      cfg.context_dilations)
+        self.multiple = 2 ** len(cfg.pyramid_channels)
+
+    def check_size(self, h: int, w: int) -> None:
+        if h % self.multiple or w % self.multiple:
+            raise ValueError(f"PWC-Net input size must be a multiple of {self.multiple}, got {h}x{w}")
+
+    def decode(self, feats1: list[torch.Tensor], feats2: list[torch.Tensor]) -> list[torch.Tensor]:
+        """Flows 1 -> 2 (finest first) from the two feature pyramids."""
+        d = self.config.search_range
+        flow = None
+        flows = []
+        for k, lvl in enumerate(self.levels):
+            f1 = feats1[lvl - 1]
+            f2 = feats2[lvl - 1]
+            n, _, h, w = f1.shape
+            if flow is None:
+                flow = f1.new_zeros((n, 2, h, w))
+                f2w = f2
+            else:
+                flow = upsample_flow(flow, (h, w))
+                f2w = warp(f2, flow)
+            cost = F.leaky_relu(cost_volume(f1, f2w, d), 0.1)
+            feat, residual = self.estimators[k](torch.cat((cost, f1, flow), dim=1))
+            flow = flow + residual
+            if lvl == self.config.output_level:
+                flow = flow + self.context(torch.cat((feat, flow), dim=1))
+            flows.append(flow)
+        return flows[::-1]
+
+    def forward(self, img1: torch.Tensor, img2: torch.Tensor) -> list[torch.Tensor]:
+        self.check_size(img1.shape[2], img1.shape[3])
+        n = img1.shape[0]
+        feats = self.pyramid(torch.cat((img1, img2), dim=0))
+        return self.decode([f[:n] for f in feats], [f[n:] for f in feats])
+
+    def full_flow(self, flow: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+        """Upsample an output-level flow to the input size ``(H, W)``, in input pixels."""
+        return upsample_flow(flow, size)
+
+    def forward_backward(self, img1: torch.Tensor, img2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Forward (1 -> 2) and backward (2 -> 1) flow ``(N, 2, H, W)`` in input pixels.
+
+        The pyramid runs once on both images; both directions are decoded as one batch.
+        """
+        h, w = img1.shape[2:]
+        self.check_size(h, w)
+        n = img1.shape[0]
+        feats = self.pyramid(torch.cat((img1, img2), dim=0))
+        swapped = [torch.cat((f[n:], f[:n]), dim=0) for f in feats]
+        flows = self.decode(feats, swapped)
+        full = self.full_flow(flows[0], (h, w))
+        return full[:n], full[n:]

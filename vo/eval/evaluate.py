@@ -1,0 +1,235 @@
+"""The eval protocol end to end: associate, re-base, align, segment metric, ATE, RPE."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from vo.errors import InputError
+from vo.eval.align import ALIGN_MODES, align_rebased, degenerate_message
+from vo.eval.associate import DEFAULT_MAX_TIME_DIFF, match_frames
+from vo.eval.ate_rpe import ate_errors, rmse, rpe_errors
+from vo.eval.loader import MIN_COMMON_FRAMES, Association, associate, load_ground_truth, load_prediction
+from vo.eval.segments import (
+    DEFAULT_LENGTHS,
+    DEFAULT_STEP,
+    SegmentErrors,
+    path_distances,
+    segment_errors,
+    summarize_segments,
+)
+
+
+@dataclass(frozen=True)
+class EvalResult:
+    """Metrics plus the arrays behind them (for plots and viewers).
+
+    Attributes:
+        metrics: the JSON-ready dict (see :func:`evaluate`).
+        pred_aligned: ``(K, 4, 4)`` prediction re-based and aligned onto ``gt_rebased``.
+        gt_rebased: ``(K, 4, 4)`` ground truth re-based to its first common frame.
+        frames: ``(K,)`` frame indices, or None (matched by timestamp).
+        segments: the per-segment errors.
+        ate: ``(K,)`` position error per frame (m).
+    """
+
+    metrics: dict
+    pred_aligned: np.ndarray
+    gt_rebased: np.ndarray
+    frames: np.ndarray | None
+    segments: SegmentErrors
+    ate: np.ndarray
+
+
+def suggest_lengths(path_length: float) -> list[float]:
+    """Eight round segment lengths (1, 2 or 5 x 10^k steps) that fit in ``path_length`` m."""
+    if not path_length > 0:
+        return []
+    target = path_length / 8.0
+    k = math.floor(math.log10(target))
+    step = max(m * 10.0**k for m in (1, 2, 5) if m * 10.0**k <= target)
+    return [step * i for i in range(1, 9)]
+
+
+def _fmt_len(x: float) -> str:
+    return f"{x:g}"
+
+
+def evaluate_associated(
+    pred_poses: np.ndarray,
+    gt_poses: np.ndarray,
+    align: str = "7dof",
+    lengths=DEFAULT_LENGTHS,
+    step: int = DEFAULT_STEP,
+    frames: np.ndarray | None = None,
+) -> EvalResult:
+    """Protocol steps 2-5 on poses already associated one-to-one (same frames, in order).
+
+    Args:
+        pred_poses: ``(K, 4, 4)`` predicted camera-to-world poses.
+        gt_poses: ``(K, 4, 4)`` ground-truth camera-to-world poses.
+        align: ``"7dof"``, ``"6dof"``, ``"scale"`` or ``"none"``.
+        lengths: segment lengths (m).
+        step: first frames every ``step`` kept frames.
+        frames: ``(K,)`` frame indices, only recorded.
+
+    Raises:
+        InputError: fewer than 3 frames, or a degenerate alignment.
+    """
+    pred = np.asarray(pred_poses, dtype=np.float64)
+    gt = np.asarray(gt_poses, dtype=np.float64)
+    if pred.ndim != 3 or pred.shape[1:] != (4, 4) or pred.shape != gt.shape:
+        raise ValueError(f"pred_poses and gt_poses must both be (K, 4, 4), got {pred.shape} and {gt.shape}")
+    if align not in ALIGN_MODES:
+        raise InputError(f"unknown alignment {align!r}; expected one of {', '.join(ALIGN_MODES)}")
+    lengths = [float(x) for x in lengths]
+    if not lengths or any(not (math.isfinite(x) and x > 0) for x in lengths):
+        raise InputError(f"segment lengths must be positive numbers, got {lengths}")
+    if pred.shape[0] < MIN_COMMON_FRAMES:
+        raise InputError(f"only {pred.shape[0]} common frame(s); need at least {MIN_COMMON_FRAMES}")
+    pred_aligned, gt_r, (s, R, t), valid = align_rebased(pred, gt, align)
+    if not valid:
+        raise InputError(degenerate_message(align))
+    seg = segment_errors(gt_r, pred_aligned, lengths, step)
+    seg_summary = summarize_segments(seg, lengths)
+    ate = ate_errors(gt_r, pred_aligned)
+    rpe_t, rpe_r = rpe_errors(gt_r, pred_aligned, 1)
+    path_length = float(path_distances(gt_r[:, :3, 3])[-1])
+    note = ""
+    if seg_summary["num_segments"] == 0:
+        sugg = ",".join(_fmt_len(x) for x in suggest_lengths(path_length))
+        note = (
+            f"no segment: the ground-truth path of the common frames is {path_length:.1f} m, "
+            f"shorter than the shortest segment length ({_fmt_len(min(lengths))} m)"
+            + (f"; try --lengths {sugg}" if sugg else "")
+        )
+    metrics = {
+        "t_err": seg_summary["t_err"],
+        "r_err": seg_summary["r_err"],
+        "ate_rmse": rmse(ate),
+        "ate_mean": float(ate.mean()),
+        "ate_max": float(ate.max()),
+        "rpe_trans": rmse(rpe_t),
+        "rpe_rot": float(np.degrees(rmse(rpe_r))),
+        "rpe_trans_mean": float(rpe_t.mean()),
+        "rpe_rot_mean": float(np.degrees(rpe_r.mean())),
+        "num_frames": int(pred.shape[0]),
+        "num_segments": seg_summary["num_segments"],
+        "align": align,
+        "scale": float(s),
+        "lengths": lengths,
+        "step": int(step),
+        "path_length": path_length,
+        "per_length": seg_summary["per_length"],
+        "units": {
+            "t_err": "%",
+            "r_err": "deg/100m",
+            "ate": "m",
+            "rpe_trans": "m",
+            "rpe_rot": "deg",
+            "path_length": "m",
+        },
+    }
+    if note:
+        metrics["note"] = note
+    frames_arr = None if frames is None else np.asarray(frames, dtype=np.int64)
+    return EvalResult(metrics, pred_aligned, gt_r, frames_arr, seg, ate)
+
+
+def evaluate(
+    pred_poses: np.ndarray,
+    pred_frames: np.ndarray | None,
+    gt_poses: np.ndarray,
+    gt_frames: np.ndarray | None = None,
+    align: str = "7dof",
+    lengths=DEFAULT_LENGTHS,
+    step: int = DEFAULT_STEP,
+) -> dict:
+    """Evaluate a predicted trajectory against ground truth (the ``trianflow-vo eval`` protocol).
+
+    1. Keep the frames present in both, in frame order.
+    2. Re-base both to their first common frame (it becomes identity).
+    3. Align: ``"7dof"`` Umeyama with scale on positions, applied to whole poses
+       (rotation ``R @ R_i``, position ``s R p_i + t``); ``"6dof"`` without scale;
+       ``"scale"`` least-squares scale only; ``"none"``.
+    4. KITTI segment metric: cumulative ground-truth path length over the kept frames,
+       first frames every ``step`` kept frames, for each length L whose end frame (first
+       one more than L further along the path) exists the relative-pose error; ``t_err``
+       = mean translation error / L (%), ``r_err`` = mean rotation angle / L (deg/100 m).
+    5. ATE (position error after alignment) and RPE between consecutive kept frames.
+
+    Args:
+        pred_poses: ``(N, 4, 4)`` predicted camera-to-world poses.
+        pred_frames: ``(N,)`` unique frame indices of ``pred_poses``, or None for
+            ``0..N-1``.
+        gt_poses: ``(M, 4, 4)`` ground-truth camera-to-world poses.
+        gt_frames: ``(M,)`` unique frame indices, or None for ``0..M-1``.
+        align: ``"7dof"`` (default), ``"6dof"``, ``"scale"``, ``"none"``.
+        lengths: segment lengths in metres (default 100, 200, ..., 800).
+        step: first-frame spacing in kept frames (default 10).
+
+    Returns:
+        A dict: ``t_err`` (%), ``r_err`` (deg/100 m) -- None when no segment fits, with
+        a ``note`` saying so --, ``ate_rmse``/``ate_mean``/``ate_max`` (m), ``rpe_trans``
+        (RMSE, m), ``rpe_rot`` (RMSE, deg), ``rpe_trans_mean``, ``rpe_rot_mean``,
+        ``num_frames`` (common frames), ``num_segments``, ``align``, ``scale`` (the
+        alignment's), ``lengths``, ``step``, ``path_length`` (m), ``per_length``
+        (list of ``{"length", "t_err", "r_err", "num_segments"}``), ``units``.
+
+    Raises:
+        vo.errors.InputError: fewer than 3 common frames, degenerate alignment.
+    """
+    pred = np.asarray(pred_poses, dtype=np.float64)
+    gt = np.asarray(gt_poses, dtype=np.float64)
+    for name, T in (("pred_poses", pred), ("gt_poses", gt)):
+        if T.ndim != 3 or T.shape[1:] != (4, 4):
+            raise ValueError(f"{name} must be (N, 4, 4), got {T.shape}")
+    pf = np.arange(pred.shape[0]) if pred_frames is None else np.asarray(pred_frames, dtype=np.int64)
+    gf = np.arange(gt.shape[0]) if gt_frames is None else np.asarray(gt_frames, dtype=np.int64)
+    if pf.shape != (pred.shape[0],) or gf.shape != (gt.shape[0],):
+        raise ValueError("frame arrays must have one entry per pose")
+    for name, f in (("pred_frames", pf), ("gt_frames", gf)):
+        if np.unique(f).size != f.size:
+            raise InputError(f"{name} has repeated frame indices")
+    pi, gi = match_frames(pf, gf)
+    if pi.size < MIN_COMMON_FRAMES:
+        raise InputError(f"only {pi.size} frame(s) in common with the ground truth; need at least {MIN_COMMON_FRAMES}")
+    return evaluate_associated(pred[pi], gt[gi], align, lengths, step, pf[pi]).metrics
+
+
+def evaluate_files(
+    pred_path: str | Path,
+    gt_path: str | Path,
+    align: str = "7dof",
+    lengths=DEFAULT_LENGTHS,
+    step: int = DEFAULT_STEP,
+    max_time_diff: float = DEFAULT_MAX_TIME_DIFF,
+) -> EvalResult:
+    """Load, associate (see :func:`vo.eval.loader.associate`) and evaluate.
+
+    ``pred_path`` is a run folder or a trajectory file. The metrics dict also gets
+    ``pred``, ``gt`` (files read), ``matched_by``, ``num_pred_frames`` and
+    ``num_gt_frames``. Degenerate alignments are reported against ``pred_path``.
+    """
+    gt = load_ground_truth(gt_path)
+    pred, desc = load_prediction(pred_path, gt.kind)
+    assoc: Association = associate(pred, gt, max_time_diff, desc)
+    try:
+        result = evaluate_associated(assoc.pred_poses, assoc.gt_poses, align, lengths, step, assoc.frames)
+    except InputError as exc:
+        if exc.path is None:
+            raise InputError(exc.message, pred.path) from None
+        raise
+    result.metrics.update(
+        {
+            "pred": desc,
+            "gt": str(gt_path),
+            "matched_by": assoc.matched_by,
+            "num_pred_frames": assoc.num_pred,
+            "num_gt_frames": assoc.num_gt,
+        }
+    )
+    return result

@@ -1,0 +1,46 @@
+"""Epipolar distances of matches under a fundamental matrix."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def _homog(pts: np.ndarray) -> np.ndarray:
+    return np.concatenate([pts, np.ones((pts.shape[0], 1))], axis=1)
+
+
+def epipolar_distance(F: np.ndarray, pts1: np.ndarray, pts2: np.ndarray) -> np.ndarray:
+    """Distance (pixels) of each ``pts2`` to the epipolar line ``F @ pts1`` in image 2.
+
+    Args:
+        F: ``(3, 3)`` with ``x2^T F x1 = 0``.
+        pts1: ``(N, 2)`` pixels in image 1.
+        pts2: ``(N, 2)`` pixels in image 2.
+
+    Returns:
+        ``(N,)`` distances; this is the paper's D_epi.
+    """
+    if F.shape != (3, 3):
+        raise ValueError(f"F must be (3, 3), got {F.shape}")
+    x1 = _homog(np.asarray(pts1, dtype=np.float64))
+    x2 = _homog(np.asarray(pts2, dtype=np.float64))
+    lines = x1 @ F.T  # (N, 3): l2 = F x1
+    num = np.abs((lines * x2).sum(1))
+    den = np.sqrt(lines[:, 0] ** 2 + lines[:, 1] ** 2) + 1e-12
+    return num / den
+
+
+def sampson_distance(F: np.ndarray, pts1: np.ndarray, pts2: np.ndarray) -> np.ndarray:
+    """Sampson distance ``(N,)`` (first-order geometric error, pixels) of matches under ``F`` ``(3, 3)``."""
+    x1 = _homog(np.asarray(pts1, dtype=np.float64))
+    x2 = _homog(np.asarray(pts2, dtype=np.float64))
+    Fx1 = x1 @ F.T
+    Ftx2 = x2 @ F
+    num = (x2 * Fx1).sum(1)
+    den = Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2 + 1e-18
+    return np.abs(num) / np.sqrt(den)
+
+
+def inlier_score(d_epi: np.ndarray, threshold: float = 0.5) -> np.ndarray:
+    """The paper's inlier score ``M_r = (D_epi < threshold) / (1 + D_epi)``, same shape as ``d_epi``."""
+    return (d_epi < threshold).astype(np.float32) / (1.0 + d_epi.astype(np.float32))

@@ -1,0 +1,219 @@
+"""Relative pose of two calibrated views from matches: robust estimation + refinement.
+
+Estimators:
+    ``"ransac"``  OpenCV's five-point essential-matrix RANSAC on normalised points.
+    ``"magsac"``  OpenCV's USAC MAGSAC++ (local optimisation included).
+    ``"8point"``  our normalised eight-point fundamental matrix in a RANSAC loop,
+                  converted to E with K (the paper's choice).
+Every estimator is followed (``refine=True``) by a robust Gauss-Newton-style
+refinement of ``(R, t)`` minimising the Sampson error (pixels) with a Cauchy loss,
+because RANSAC returns its best sampled hypothesis unrefined.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from vo.geometry.epipolar import sampson_distance
+from vo.geometry.essential import choose_pose_cheirality
+from vo.geometry.fundamental import eight_point, essential_from_fundamental, fundamental_from_pose
+from vo.geometry.se3 import rodrigues, skew
+
+
+@dataclass
+class RelativePose:
+    """``X2 = R @ X1 + t`` with ``|t| = 1``; ``inliers`` ``(N,)`` bool; ``F`` ``(3, 3)``."""
+
+    R: np.ndarray
+    t: np.ndarray
+    inliers: np.ndarray
+    F: np.ndarray
+    n_cheirality: int
+
+
+def _ransac_8point(pts1, pts2, threshold_px, rng, prob=0.999, max_iters=2000):
+    n = pts1.shape[0]
+    best_inl = None
+    best_count = -1
+    iters = max_iters
+    i = 0
+    while i < iters:
+        idx = rng.choice(n, 8, replace=False)
+        F, ok = eight_point(pts1[idx], pts2[idx])
+        i += 1
+        if not ok:
+            continue
+        inl = sampson_distance(F, pts1, pts2) < threshold_px
+        c = int(inl.sum())
+        if c > best_count:
+            best_count, best_inl = c, inl
+            w = c / n
+            denom = np.log(max(1e-12, 1.0 - w ** 8))
+            if denom < 0:
+                iters = min(max_iters, int(np.ceil(np.log(1 - prob) / denom)))
+    if best_inl is None or best_count < 8:
+        return None, None
+    F, ok = eight_point(pts1[best_inl], pts2[best_inl])
+    if not ok:
+        return None, None
+    return F, best_inl
+
+
+def _signed_sampson(R, t, x1n, x2n, f):
+    # residual in pixels for normalised coordinates scaled by focal length f
+    E = skew(t) @ R
+    Ex1 = x1n @ E.T
+    Etx2 = x2n @ E
+    num = (x2n * Ex1).sum(1)
+    den = Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2 + 1e-18
+    return f * num / np.sqrt(den)
+
+
+def _robust_cost(r, scale):
+    # truncated Cauchy: constant beyond 3 scales
+    return np.sum(np.log1p(np.minimum(np.abs(r) / scale, 3.0) ** 2))
+
+
+def refine_pose_sampson(
+    R0: np.ndarray, t0: np.ndarray, pts1: np.ndarray, pts2: np.ndarray, K: np.ndarray, scale_px: float = 0.5,
+    iters: int = 15,
+) -> tuple[tuple[np.ndarray, np.ndarray], bool]:
+    """Robust refinement of ``(R, t)`` minimising the Sampson error (truncated Cauchy loss).
+
+    Args:
+        R0: ``(3, 3)``, t0: ``(3,)`` initial pose (``X2 = R X1 + t``).
+        pts1, pts2: ``(N, 2)`` pixel matches.
+        K: ``(3, 3)`` intrinsics.
+        scale_px: Cauchy scale in pixels.
+        iters: Gauss-Newton (IRLS) iterations.
+
+    Returns:
+        ``((R, t), valid)``, ``|t| = 1``.
+    """
+    Kinv = np.linalg.inv(K)
+    x1n = np.concatenate([pts1, np.ones((len(pts1), 1))], 1) @ Kinv.T
+    x2n = np.concatenate([pts2, np.ones((len(pts2), 1))], 1) @ Kinv.T
+    f = float(np.sqrt(K[0, 0] * K[1, 1]))
+    R = R0.copy()
+    t = np.asarray(t0, dtype=np.float64) / np.linalg.norm(t0)
+    eps = 1e-6
+
+    def basis(tv):
+        a = np.array([1.0, 0.0, 0.0]) if abs(tv[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        b1 = np.cross(tv, a)
+        b1 /= np.linalg.norm(b1)
+        b2 = np.cross(tv, b1)
+        return np.stack([b1, b2], 1)
+
+    def apply(R, t, B, dx):
+        Rn = rodrigues(dx[:3]) @ R
+        tn = t + B @ dx[3:]
+        return Rn, tn / np.linalg.norm(tn)
+
+    r = _signed_sampson(R, t, x1n, x2n, f)
+    lam = 1e-3
+    for _ in range(iters):
+        B = basis(t)
+        J = np.empty((len(r), 5))
+        for k in range(5):
+            dx = np.zeros(5)
+            dx[k] = eps
+            Rk, tk = apply(R, t, B, dx)
+            J[:, k] = (_signed_sampson(Rk, tk, x1n, x2n, f) - r) / eps
+        # Cauchy IRLS weights, zero beyond 3 scales (gross outliers have no say)
+        w = (np.abs(r) < 3.0 * scale_px) / (1.0 + (r / scale_px) ** 2)
+        JW = J * w[:, None]
+        H = JW.T @ J
+        g = JW.T @ r
+        cost = _robust_cost(r, scale_px)
+        improved = False
+        for _ in range(8):  # Levenberg-Marquardt damping
+            try:
+                dx = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), g)
+            except np.linalg.LinAlgError:
+                return (R0, t0), False
+            Rn, tn = apply(R, t, B, dx)
+            rn = _signed_sampson(Rn, tn, x1n, x2n, f)
+            cost_n = _robust_cost(rn, scale_px)
+            if np.isfinite(cost_n) and cost_n <= cost:
+                R, t, r = Rn, tn, rn
+                lam = max(lam / 10.0, 1e-7)
+                improved = True
+                break
+            lam *= 10.0
+        if not improved or np.linalg.norm(dx) < 1e-10:
+            break
+    return (R, t), bool(np.all(np.isfinite(R)) and np.all(np.isfinite(t)))
+
+
+def estimate_relative_pose(
+    pts1: np.ndarray,
+    pts2: np.ndarray,
+    K: np.ndarray,
+    threshold_px: float = 0.1,
+    method: str = "ransac",
+    refine: bool = True,
+    inlier_px: float = 0.5,
+    rng: np.random.Generator | None = None,
+) -> tuple[RelativePose | None, bool]:
+    """Relative pose from pixel matches of two views with the same intrinsics.
+
+    Args:
+        pts1, pts2: ``(N, 2)`` matching pixels, ``N >= 8``.
+        K: ``(3, 3)`` intrinsics.
+        threshold_px: RANSAC inlier threshold (pixels).
+        method: ``"ransac"``, ``"magsac"`` or ``"8point"`` (see module docstring).
+        refine: robust Sampson refinement after the estimator.
+        inlier_px: Sampson distance under which a match counts as an inlier of the
+            final pose.
+        rng: random generator for the ``"8point"`` RANSAC.
+
+    Returns:
+        ``(RelativePose or None, valid)``; invalid when the estimator finds no
+        model or the cheirality check is ambiguous.
+    """
+    pts1 = np.asarray(pts1, dtype=np.float64)
+    pts2 = np.asarray(pts2, dtype=np.float64)
+    if pts1.ndim != 2 or pts1.shape[1] != 2 or pts1.shape != pts2.shape:
+        raise ValueError(f"pts1 and pts2 must both be (N, 2), got {pts1.shape} and {pts2.shape}")
+    if K.shape != (3, 3):
+        raise ValueError(f"K must be (3, 3), got {K.shape}")
+    if pts1.shape[0] < 8:
+        return None, False
+    f = float(np.sqrt(K[0, 0] * K[1, 1]))
+    Kinv = np.linalg.inv(K)
+    if method in ("ransac", "magsac"):
+        x1 = (np.concatenate([pts1, np.ones((len(pts1), 1))], 1) @ Kinv.T)[:, :2]
+        x2 = (np.concatenate([pts2, np.ones((len(pts2), 1))], 1) @ Kinv.T)[:, :2]
+        flag = cv2.RANSAC if method == "ransac" else cv2.USAC_MAGSAC
+        E, mask = cv2.findEssentialMat(
+            np.ascontiguousarray(x1), np.ascontiguousarray(x2), np.eye(3), method=flag, prob=0.999,
+            threshold=threshold_px / f,
+        )
+        if E is None or E.shape != (3, 3):
+            return None, False  # none, or several stacked solutions from a degenerate sample
+        inl = mask.ravel().astype(bool)
+    elif method == "8point":
+        rng = np.random.default_rng(0) if rng is None else rng
+        F, inl = _ransac_8point(pts1, pts2, threshold_px, rng)
+        if F is None:
+            return None, False
+        E = essential_from_fundamental(F, K)
+    else:
+        raise ValueError(f"unknown method {method!r}")
+    if inl.sum() < 8:
+        return None, False
+    (R, t), n_front, ok = choose_pose_cheirality(E, pts1[inl], pts2[inl], K)
+    if not ok:
+        return None, False
+    if refine:
+        (R, t), ok = refine_pose_sampson(R, t, pts1, pts2, K, scale_px=max(threshold_px, 0.25))
+        if not ok:
+            return None, False
+    F = fundamental_from_pose(R, t, K)
+    d = sampson_distance(F, pts1, pts2)
+    inliers = d < inlier_px
+    return RelativePose(R=R, t=t, inliers=inliers, F=F, n_cheirality=n_front), True
