@@ -431,13 +431,25 @@ def test_pipeline_writes_a_recording_with_ground_truth(tmp_path, sample_seq):
 
 
 def test_run_without_rerun_flags_never_imports_rerun(tmp_path, sample_seq):
+    if (REPO / "cli" / "run_cmd.py").exists():  # the real command line
+        call = (
+            "from click.testing import CliRunner\n"
+            "from cli.main import main\n"
+            f"res = CliRunner().invoke(main, ['run', {str(sample_seq)!r}, '--end', '3', '-q', "
+            f"'--out', {str(tmp_path / 'run')!r}])\n"
+            "assert res.exit_code == 0, res.output\n"
+        )
+    else:
+        call = (
+            "from pathlib import Path\n"
+            "from vo.config import RunConfig\n"
+            "from vo.pipeline import run\n"
+            f"run(RunConfig(seq=Path({str(sample_seq)!r}), out_dir=Path({str(tmp_path / 'run')!r}), end=3))\n"
+        )
     code = (
         "import sys\n"
-        "from pathlib import Path\n"
-        "from vo.config import RunConfig\n"
-        "from vo.pipeline import run\n"
-        f"run(RunConfig(seq=Path({str(sample_seq)!r}), out_dir=Path({str(tmp_path / 'run')!r}), end=3))\n"
-        "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('rerun', 'rerun_bindings'))\n"
+        + call
+        + "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('rerun', 'rerun_bindings'))\n"
         "assert not bad, bad\n"
         "print('ok')\n"
     )
@@ -459,3 +471,20 @@ def test_cli_run_with_rerun(tmp_path, sample_seq):
     assert res.exit_code == 0, res.output
     check_run_recording(tmp_path / "out.rrd", n)
     assert (tmp_path / "run" / "trajectory.png").stat().st_size > 1000
+
+
+def test_cli_run_spawn_without_display_is_one_line(tmp_path, sample_seq, monkeypatch):
+    if not (REPO / "cli" / "run_cmd.py").exists():
+        pytest.skip("cli/run_cmd.py not written yet")
+    from click.testing import CliRunner
+
+    from cli.main import main
+
+    monkeypatch.setattr(sys, "platform", "linux")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    res = CliRunner().invoke(main, ["run", str(sample_seq), "--end", "3", "--rerun-spawn", "-q",
+                                    "--out", str(tmp_path / "run")])
+    assert res.exit_code != 0 and isinstance(res.exception, SystemExit), res.output
+    assert "no display" in res.output and "--rerun" in res.output
+    assert "Traceback" not in res.output

@@ -111,6 +111,17 @@ class Odometry:
             top = np.union1d(top, extra)
         return top
 
+    def _epipolar_distance_map(self, F: np.ndarray, fw: np.ndarray) -> np.ndarray:
+        """D_epi ``(h, w)``: distance of ``x + flow(x)`` to the epipolar line ``F x``, every pixel."""
+        F = F.astype(np.float32)
+        gx = np.arange(self.w, dtype=np.float32)[None, :]
+        gy = np.arange(self.h, dtype=np.float32)[:, None]
+        a = F[0, 0] * gx + F[0, 1] * gy + F[0, 2]
+        b = F[1, 0] * gx + F[1, 1] * gy + F[1, 2]
+        c = F[2, 0] * gx + F[2, 1] * gy + F[2, 2]
+        num = np.abs(a * (gx + fw[..., 0]) + b * (gy + fw[..., 1]) + c)
+        return num / (np.sqrt(a * a + b * b) + 1e-12)
+
     # -- main step ------------------------------------------------------------
     def step(self, frame_index: int, timestamp: float | None, image: np.ndarray) -> FrameRecord:
         """Process one working-resolution frame ``(h, w, 3)`` uint8 BGR."""
@@ -169,12 +180,8 @@ class Odometry:
         rec.stats["inliers"] = int(rel.inliers.sum())
         rec.stats["inlier_ratio"] = float(rel.inliers.mean())
         # inlier map over the whole image, matches re-drawn from M_r * M_s * M_o
-        grid_h = np.concatenate([self._grid, np.ones((self._grid.shape[0], 1), np.float32)], 1)
-        tgt = self._grid + flow_flat
-        lines = grid_h @ rel.F.T.astype(np.float32)
-        d_epi = np.abs(lines[:, 0] * tgt[:, 0] + lines[:, 1] * tgt[:, 1] + lines[:, 2]) / (
-            np.sqrt(lines[:, 0] ** 2 + lines[:, 1] ** 2) + 1e-12)
-        score2 = inlier_score(d_epi, self.p.epi_inlier_px).reshape(self.h, self.w) * score
+        d_epi = self._epipolar_distance_map(rel.F, fw)
+        score2 = inlier_score(d_epi, self.p.epi_inlier_px) * score
         anchors = None
         if depth_ref is not None and not self.depth.is_metric_prior:
             anchors = np.flatnonzero((depth_ref.ravel() > 0) & (score2.ravel() > 0))

@@ -99,6 +99,11 @@ def refine_pose_sampson(
     f = float(np.sqrt(K[0, 0] * K[1, 1]))
     R = R0.copy()
     t = np.asarray(t0, dtype=np.float64) / np.linalg.norm(t0)
+    # matches far from the initial model have no weight under the truncated loss and
+    # rarely come back within a few steps: refine on the rest (much cheaper)
+    near = np.abs(_signed_sampson(R, t, x1n, x2n, f)) < 6.0 * scale_px
+    if near.sum() >= 8:
+        x1n, x2n = x1n[near], x2n[near]
     eps = 1e-6
 
     def basis(tv):
