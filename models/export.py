@@ -28,6 +28,7 @@ against ~8 s, which matters for tests and for users. ``EXPORTER`` selects it.
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -159,7 +160,8 @@ def export_module(module: nn.Module, args: tuple, path: str | Path, input_names,
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     module.eval()
-    with torch.no_grad():
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # tracer warnings about shape checks: shapes are fixed here
         torch.onnx.export(module, args, str(path), input_names=list(input_names),
                           output_names=list(output_names), opset_version=OPSET, dynamo=(EXPORTER == "dynamo"),
                           external_data=False, verbose=False)
@@ -200,6 +202,7 @@ def ort_session(path: str | Path, threads: int = 2):
     opts.intra_op_num_threads = threads
     opts.inter_op_num_threads = 1
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     return ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
 
 

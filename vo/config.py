@@ -30,7 +30,7 @@ class RunConfig:
     n_samples: int = 6000
     top_ratio: float = 0.2
     dis_preset: str = "medium"
-    ransac_threshold_px: float = 0.1
+    ransac_threshold_px: float = 0.25
     refine: bool = True
     min_parallax_px: float = 1.0
     min_flow_px: float = 5.0

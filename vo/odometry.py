@@ -32,7 +32,8 @@ class OdometryParams:
     n_samples: int = 6000
     top_ratio: float = 0.2
     ransac_method: str = "ransac"
-    ransac_threshold_px: float = 0.1
+    ransac_threshold_px: float = 0.25
+    ransac_subset: int = 1000  # RANSAC on a subset, refinement on all matches
     refine: bool = True
     epi_inlier_px: float = 0.5  # M_r = (D_epi < 0.5) / (1 + D_epi)
     min_parallax_px: float = 1.0  # median parallax after removing rotation
@@ -171,7 +172,8 @@ class Odometry:
             return self._small_motion(rec, why, R_rot, depth_ref, idx, fw, m_s * m_o, tm)
         rel, ok = estimate_relative_pose(pts1, pts2, self.K, threshold_px=self.p.ransac_threshold_px,
                                          method=self.p.ransac_method, refine=self.p.refine,
-                                         inlier_px=self.p.epi_inlier_px, rng=self.rng)
+                                         inlier_px=self.p.epi_inlier_px, rng=self.rng,
+                                         ransac_subset=self.p.ransac_subset)
         t0 = tm.add("pose", t0)
         if not ok or rel.inliers.sum() < self.p.min_inliers:
             n_in = 0 if rel is None else int(rel.inliers.sum())
@@ -214,6 +216,7 @@ class Odometry:
                 scale, how = 1.0, "first two-view step sets the unit of scale"
             else:
                 scale, how = self.last_step_norm, "scale lost (too few points with depth): constant speed assumed"
+                rec.stats["degraded"] = 1
         t0 = tm.add("scale", t0)
         rec.stats["scale"] = float(scale)
         t_s = rel.t * scale

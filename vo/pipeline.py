@@ -141,10 +141,13 @@ def run(
                 now = time.perf_counter()
                 rec.stats["frame_ms"] = (now - t_prev) * 1000.0  # wall time per frame, decoding included
                 t_prev = now
-                if rec.branch not in ("init", "two-view"):
+                if rec.branch not in ("init", "two-view") or rec.stats.get("degraded"):
                     warn(f"frame {item.index}: {rec.branch} ({rec.reason})")
                 for ob in all_obs:
                     ob.on_frame(rec)
+        if writer.n_frames < 2:
+            raise InputError(f"fewer than two usable frames ({writer.n_frames} processed, "
+                             f"{len(writer.skipped)} skipped)", config.seq)
     except KeyboardInterrupt:
         interrupted = True
         raise
@@ -168,8 +171,4 @@ def run(
                                 gt_frames=None if gt is None else gt[1], title=str(seq.path.name))
             except Exception as exc:
                 warn(f"trajectory.png not written: {exc}")
-    summary = writer.summary()
-    if writer.n_frames < 2:
-        raise InputError(f"fewer than two usable frames ({writer.n_frames} processed, "
-                         f"{len(writer.skipped)} skipped)", config.seq)
-    return summary
+    return writer.summary()

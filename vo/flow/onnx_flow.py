@@ -87,6 +87,10 @@ def open_model(path: str | Path, kind: str, threads: int = 2):
     opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     opts.log_severity_level = 3
+    # idle worker threads sleep instead of spinning: on a busy CPU (and between calls,
+    # while the pipeline runs OpenCV/numpy) spinning threads steal the cores that do
+    # the work; see benchmarks/NETWORK.md
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     try:
         sess = ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
     except Exception as exc:  # onnxruntime raises its own exception types for unreadable graphs

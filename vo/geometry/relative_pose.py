@@ -149,7 +149,7 @@ def refine_pose_sampson(
                 improved = True
                 break
             lam *= 10.0
-        if not improved or np.linalg.norm(dx) < 1e-10:
+        if not improved or np.linalg.norm(dx) < 1e-10 or cost - cost_n < 1e-6 * cost:
             break
     return (R, t), bool(np.all(np.isfinite(R)) and np.all(np.isfinite(t)))
 
@@ -163,6 +163,7 @@ def estimate_relative_pose(
     refine: bool = True,
     inlier_px: float = 0.5,
     rng: np.random.Generator | None = None,
+    ransac_subset: int | None = None,
 ) -> tuple[RelativePose | None, bool]:
     """Relative pose from pixel matches of two views with the same intrinsics.
 
@@ -174,7 +175,10 @@ def estimate_relative_pose(
         refine: robust Sampson refinement after the estimator.
         inlier_px: Sampson distance under which a match counts as an inlier of the
             final pose.
-        rng: random generator for the ``"8point"`` RANSAC.
+        rng: random generator for the ``"8point"`` RANSAC and the subset.
+        ransac_subset: run the estimator on this many matches drawn at random
+            (the refinement then uses all of them): with refinement the answer is
+            the same and the RANSAC stage several times cheaper.
 
     Returns:
         ``(RelativePose or None, valid)``; invalid when the estimator finds no
@@ -190,6 +194,11 @@ def estimate_relative_pose(
         return None, False
     f = float(np.sqrt(K[0, 0] * K[1, 1]))
     Kinv = np.linalg.inv(K)
+    all1, all2 = pts1, pts2
+    rng = np.random.default_rng(0) if rng is None else rng
+    if ransac_subset is not None and refine and pts1.shape[0] > ransac_subset:
+        sub = rng.choice(pts1.shape[0], ransac_subset, replace=False)
+        pts1, pts2 = pts1[sub], pts2[sub]
     if method in ("ransac", "magsac"):
         x1 = (np.concatenate([pts1, np.ones((len(pts1), 1))], 1) @ Kinv.T)[:, :2]
         x2 = (np.concatenate([pts2, np.ones((len(pts2), 1))], 1) @ Kinv.T)[:, :2]
@@ -202,7 +211,6 @@ def estimate_relative_pose(
             return None, False  # none, or several stacked solutions from a degenerate sample
         inl = mask.ravel().astype(bool)
     elif method == "8point":
-        rng = np.random.default_rng(0) if rng is None else rng
         F, inl = _ransac_8point(pts1, pts2, threshold_px, rng)
         if F is None:
             return None, False
@@ -214,6 +222,7 @@ def estimate_relative_pose(
     (R, t), n_front, ok = choose_pose_cheirality(E, pts1[inl], pts2[inl], K)
     if not ok:
         return None, False
+    pts1, pts2 = all1, all2
     if refine:
         (R, t), ok = refine_pose_sampson(R, t, pts1, pts2, K, scale_px=max(threshold_px, 0.25))
         if not ok:

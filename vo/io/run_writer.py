@@ -81,9 +81,7 @@ class RunWriter:
         self.poses.append(np.asarray(rec.T_world_cam, dtype=np.float64).copy())
         self.frame_indices.append(rec.frame_index)
         self.counts[rec.branch] = self.counts.get(rec.branch, 0) + 1
-        if rec.branch not in ("init", "two-view"):
-            self.degraded.append({"frame": rec.frame_index, "branch": rec.branch, "reason": rec.reason})
-        elif rec.reason:
+        if rec.branch not in ("init", "two-view") or rec.stats.get("degraded"):
             self.degraded.append({"frame": rec.frame_index, "branch": rec.branch, "reason": rec.reason})
         if "inliers" in rec.stats:
             self.inliers.append(int(rec.stats["inliers"]))
