@@ -171,7 +171,11 @@ def markdown(results: dict, memory: dict | None, meta: dict) -> str:
     out = ["## VO benchmark: dense (weight-free TrianFlow) vs sparse baseline", ""]
     out.append(f"- Date: {meta['date']}; machine: {meta['machine']}, {meta['cores']} cores, "
                f"Python {meta['python']}, OpenCV {meta['opencv']}; {THREADS} threads.")
-    out.append(f"- Command: `{meta['command']}`")
+    out.append(f"- Command: `{meta['command']}`; code: {meta.get('git', 'unknown')}")
+    if meta.get("merged_from"):
+        mf = meta["merged_from"]
+        out.append(f"- Cases {', '.join(mf['cases'])} (and the memory check unless re-run) are taken from "
+                   f"`{Path(mf['file']).name}` ({mf['date']}).")
     out.append(f"- Seeds (dense): {meta['seeds']}; ATE % is the median over seeds [min-max]. "
                "The sparse baseline has no random sampling and runs once.")
     out.append("- Speeds are noisy: other engineers used the same 2 cores during the run (load average "
@@ -256,6 +260,18 @@ def targets(results: dict, memory: dict | None) -> list[str]:
 # ---------------------------------------------------------------------------
 
 
+def _git_state() -> str:
+    """Commit and whether vo/ has uncommitted changes (the code measured)."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              cwd=str(REPO)).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "vo"], capture_output=True, text=True,
+                               cwd=str(REPO)).stdout.strip()
+    except OSError:
+        return "unknown"
+    return head + (" + uncommitted changes in vo/" if dirty else "")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data",
@@ -263,7 +279,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", default="0,1,2", help="comma-separated seeds for the dense pipeline")
     ap.add_argument("--quick", action="store_true", help="one seed (the first of --seeds)")
     ap.add_argument("--only", default=None,
-                    help=f"run one case: {', '.join(CASES)} or 'memory'")
+                    help=f"comma-separated cases to run: {', '.join(CASES)}, memory")
+    ap.add_argument("--merge", type=Path, default=None,
+                    help="a previous results JSON: its cases that this run does not redo are kept in the report")
     ap.add_argument("--methods", default="dense,sparse", help="comma-separated: dense, sparse")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "out", help="run folders go here")
     ap.add_argument("--json", type=Path, default=None, help="results JSON (default OUT/vo.json)")
@@ -294,10 +312,19 @@ def main(argv=None) -> int:
     if any(m not in ("dense", "sparse") for m in methods):
         print(f"error: --methods must name dense and/or sparse, got {args.methods!r}", file=sys.stderr)
         return 2
-    if args.only is not None and args.only not in CASES and args.only != "memory":
-        print(f"error: unknown case {args.only!r}; expected one of {', '.join(CASES)}, memory", file=sys.stderr)
+    only = None if args.only is None else [x.strip() for x in args.only.split(",") if x.strip()]
+    bad = [x for x in (only or []) if x not in CASES and x != "memory"]
+    if bad:
+        print(f"error: unknown case {bad[0]!r}; expected one of {', '.join(CASES)}, memory", file=sys.stderr)
         return 2
-    cases = {k: v for k, v in CASES.items() if args.only in (None, k)}
+    previous = None
+    if args.merge is not None:
+        try:
+            previous = json.loads(args.merge.read_text())
+        except (OSError, ValueError) as exc:
+            print(f"error: {args.merge}: cannot read previous results ({exc})", file=sys.stderr)
+            return 2
+    cases = {k: v for k, v in CASES.items() if only is None or k in only}
     for name, (folder, *_rest) in cases.items():
         if not (data / folder).is_dir():
             print(f"error: clip {folder} not found in {data}", file=sys.stderr)
@@ -307,12 +334,13 @@ def main(argv=None) -> int:
 
     meta = {
         "date": datetime.datetime.now().strftime("%Y-%m-%d %H:%M"),
-        "machine": platform.machine() + " " + platform.processor(),
+        "machine": " ".join(x for x in (platform.machine(), platform.processor()) if x),
         "cores": os.cpu_count(),
         "python": platform.python_version(),
         "opencv": cv2.__version__,
         "command": "python benchmarks/bench_vo.py " + " ".join(sys.argv[1:] if argv is None else argv),
         "seeds": seeds,
+        "git": _git_state(),
         "load_before": " ".join(f"{x:.1f}" for x in os.getloadavg()),
     }
     results: dict = {}
@@ -333,7 +361,7 @@ def main(argv=None) -> int:
             results[name][method] = aggregate(runs)
 
     memory = None
-    if args.only in (None, "memory") and "dense" in methods:
+    if (only is None or "memory" in only) and "dense" in methods:
         folder = MEMORY_CASE
         res = {}
         for end in (150, None):
@@ -353,6 +381,15 @@ def main(argv=None) -> int:
         print(f"memory: {memory}", flush=True)
 
     meta["load_after"] = " ".join(f"{x:.1f}" for x in os.getloadavg())
+    if previous is not None:
+        merged = {k: v for k, v in previous.get("results", {}).items() if k not in results}
+        merged_raw = {k: v for k, v in previous.get("runs", {}).items() if k not in raw}
+        results = {k: ({**merged, **results})[k] for k in CASES if k in merged or k in results}
+        raw = {**merged_raw, **raw}
+        if memory is None:
+            memory = previous.get("memory")
+        meta["merged_from"] = {"file": str(args.merge), "cases": sorted(merged),
+                               "date": previous.get("meta", {}).get("date")}
     md = markdown(results, memory, meta)
     print()
     print(md)

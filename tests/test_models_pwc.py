@@ -70,7 +70,7 @@ def _textured(h: int, w: int, seed: int) -> np.ndarray:
 def test_shifted_pair_gives_finite_flow_at_every_scale():
     torch.manual_seed(0)
     net = PWCNet().eval()
-    h, w, shift = 128, 384, 3
+    h, w, shift = 64, 192, 3
     big = _textured(h, w + shift, 0)
     img1 = torch.from_numpy(big[:, :, shift:].copy())[None]  # frame 2 = frame 1 moved 3 px right
     img2 = torch.from_numpy(big[:, :, :w].copy())[None]

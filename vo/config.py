@@ -32,12 +32,13 @@ class RunConfig:
     dis_preset: str = "medium"
     ransac_threshold_px: float = 0.25
     refine: bool = True
-    min_parallax_px: float = 1.0
+    min_parallax_px: float = 3.0
     min_flow_px: float = 5.0
     min_inliers: int = 100
     ransac_method: str = "ransac"
     depth_fusion: bool = True
     depth_decay: float = 0.8
+    pnp_check_ratio: float = 1.5
     # outputs
     rerun: Path | None = None
     rerun_spawn: bool = False

@@ -36,7 +36,7 @@ class OdometryParams:
     ransac_subset: int = 1000  # RANSAC on a subset, refinement on all matches
     refine: bool = True
     epi_inlier_px: float = 0.5  # M_r = (D_epi < 0.5) / (1 + D_epi)
-    min_parallax_px: float = 1.0  # median parallax after removing rotation
+    min_parallax_px: float = 3.0  # median parallax after removing rotation
     static_flow_px: float = 0.25  # median flow under this: the camera did not move
     min_inliers: int = 100
     min_scale_points: int = 20
@@ -45,6 +45,7 @@ class OdometryParams:
     pnp_reproj_px: float = 1.0
     depth_fusion: bool = True  # fuse carried depth with new triangulation (weight-free source)
     depth_decay: float = 0.8  # carried depth loses this much weight per step
+    pnp_check_ratio: float = 1.5  # two-view scale vs PnP disagreeing more than this: use PnP (0 = off)
     seed: int = 0
 
 
@@ -193,24 +194,47 @@ class Odometry:
         t0 = tm.add("redraw", t0)
         q1 = self._grid[idx2].astype(np.float64)
         q2 = q1 + flow_flat[idx2]
-        X, valid, angle = triangulate_midpoint(q1, q2, self.K, rel.R, rel.t, min_angle=self.p.min_angle_rad)
+        R_use, t_unit = rel.R, rel.t
+        X, valid, angle = triangulate_midpoint(q1, q2, self.K, R_use, t_unit, min_angle=self.p.min_angle_rad)
         t0 = tm.add("triangulate", t0)
         if valid.sum() < self.p.min_scale_points:
             return self._small_motion(rec, f"only {int(valid.sum())} points triangulated", R_rot, depth_ref, idx, fw,
                                       m_s * m_o, tm)
         # scale from the reference depth
-        scale, scale_ok, how = 1.0, False, ""
-        d_tri = X[valid, 2]
-        w_new = angle[valid] ** 2  # information of a triangulated depth grows with parallax squared
-        d_ref = w_ref = None
-        if depth_ref is not None:
+        branch, how = "two-view", ""
+        wmap = getattr(self.depth, "weight", lambda i: None)(kf.index) if depth_ref is not None else None
+
+        def depths_at(valid, angle):
+            """(reference depth, its weight, new-depth weight, scale weight) of the valid points."""
+            w_new = angle[valid] ** 2  # information of a triangulated depth grows with parallax squared
+            if depth_ref is None:
+                return None, None, w_new, None
             d_ref = depth_ref.ravel()[idx2][valid]
-            wmap = getattr(self.depth, "weight", lambda i: None)(kf.index)
-            w_ref = (wmap.ravel()[idx2][valid] * self.p.depth_decay) if wmap is not None else np.full_like(d_tri, np.inf)
+            w_ref = wmap.ravel()[idx2][valid] * self.p.depth_decay if wmap is not None else np.full_like(w_new, np.inf)
             # a ratio is as reliable as the less reliable of its two depths
             w_scale = 1.0 / (1.0 / np.maximum(w_new, 1e-12) + 1.0 / np.maximum(w_ref, 1e-12))
-            scale, scale_ok = align_scale(d_tri, d_ref, weights=w_scale, min_points=self.p.min_scale_points)
+            return d_ref, w_ref, w_new, w_scale
+
+        d_ref, w_ref, w_new, w_scale = depths_at(valid, angle)
+        scale, scale_ok = 1.0, False
+        if depth_ref is not None:
+            scale, scale_ok = align_scale(X[valid, 2], d_ref, weights=w_scale, min_points=self.p.min_scale_points)
             rec.stats["scale_points"] = int((d_ref > 0).sum())
+        if scale_ok and self.p.pnp_check_ratio > 0:
+            # guard: a two-view step on a short baseline can get the translation direction, and so
+            # the scale, badly wrong; PnP on the same depth says how far the camera really moved
+            (Rp, tp, _), okp, _, _ = self._pnp(depth_ref, idx, fw, score)
+            tn = float(np.linalg.norm(tp))
+            if okp and tn > 0:
+                ratio = tn / scale
+                rec.stats["pnp_ratio"] = ratio
+                if abs(np.log(ratio)) > np.log(self.p.pnp_check_ratio):
+                    R_use, t_unit, scale = Rp, tp / tn, tn
+                    X, valid, angle = triangulate_midpoint(q1, q2, self.K, R_use, t_unit,
+                                                           min_angle=self.p.min_angle_rad)
+                    d_ref, w_ref, w_new, w_scale = depths_at(valid, angle)
+                    branch = "pnp"
+                    how = f"two-view scale disagreed with PnP by {ratio:.2f}x: PnP pose used"
         if not scale_ok:
             if self.last_step_norm is None:
                 scale, how = 1.0, "first two-view step sets the unit of scale"
@@ -219,8 +243,8 @@ class Odometry:
                 rec.stats["degraded"] = 1
         t0 = tm.add("scale", t0)
         rec.stats["scale"] = float(scale)
-        t_s = rel.t * scale
-        T_cur_kf = make_T(rel.R, t_s)
+        t_s = t_unit * scale
+        T_cur_kf = make_T(R_use, t_s)
         X_s = X[valid] * scale
         w_out = w_new
         if scale_ok and not self.depth.is_metric_prior and self.p.depth_fusion:
@@ -232,13 +256,13 @@ class Odometry:
             X_s = X_s * (np.exp(log_f) / d_new)[:, None]
             w_out = w_new.copy()
             w_out[has] = w_ref[has] + w_new[has]
-        X_cur = X_s @ rel.R.T + t_s
+        X_cur = X_s @ R_use.T + t_s
         uv_cur = (X_cur @ self.K.T)[:, :2] / X_cur[:, 2:3]
         self.depth.observe(frame_index, uv_cur, X_cur[:, 2], w_out)
         self.depth.forget(kf.index)
         T_world_cur = kf.T_world_cam @ invert_T(T_cur_kf)
         rec.T_world_cam = T_world_cur
-        rec.branch, rec.reason = "two-view", how
+        rec.branch, rec.reason = branch, how
         rec.pts_ref, rec.pts_cur = q1[valid], q2[valid]
         rec.points_world = X_s @ kf.T_world_cam[:3, :3].T + kf.T_world_cam[:3, 3]
         gray = kf.image[np.rint(q1[valid, 1]).astype(int), np.rint(q1[valid, 0]).astype(int)]
@@ -248,22 +272,30 @@ class Odometry:
         tm.add("bookkeeping", t0)
         return self._finish(rec, tm)
 
+    def _pnp(self, depth_ref, idx, fw, score):
+        """PnP from keyframe depth to the flow matches: ``((R, t, inliers), ok, pts_ref, pts_cur)``.
+
+        Dense (network) depth uses the sampled pixels ``idx``; carried depth uses
+        every pixel that has depth and a positive match score (capped)."""
+        dflat = depth_ref.ravel()
+        cand = idx
+        if not self.depth.is_metric_prior:
+            cand = np.flatnonzero((dflat > 0) & (score.ravel() > 0))
+            if cand.size > self.p.max_anchors:
+                cand = self.rng.choice(cand, self.p.max_anchors, replace=False)
+        cand = cand[dflat[cand] > 0]
+        q1 = self._grid[cand].astype(np.float64)
+        q2 = q1 + fw.reshape(-1, 2)[cand]
+        X = backproject(q1, dflat[cand], self.K)
+        res, ok = solve_pnp(X, q2, self.K, reproj_px=self.p.pnp_reproj_px, rng_seed=self.p.seed)
+        return res, ok, q1, q2
+
     def _small_motion(self, rec, why, R_rot, depth_ref, idx, fw, score, tm):
         """PnP against the keyframe depth when there is some; else rotation only."""
         kf = self.kf
         t0 = time.perf_counter()
         if depth_ref is not None:
-            dflat = depth_ref.ravel()
-            cand = idx
-            if not self.depth.is_metric_prior:
-                cand = np.flatnonzero((dflat > 0) & (score.ravel() > 0))
-                if cand.size > self.p.max_anchors:
-                    cand = self.rng.choice(cand, self.p.max_anchors, replace=False)
-            cand = cand[dflat[cand] > 0]
-            q1 = self._grid[cand].astype(np.float64)
-            q2 = q1 + fw.reshape(-1, 2)[cand]
-            X = backproject(q1, dflat[cand], self.K)
-            (R, t, inl), ok = solve_pnp(X, q2, self.K, reproj_px=self.p.pnp_reproj_px, rng_seed=self.p.seed)
+            (R, t, inl), ok, q1, q2 = self._pnp(depth_ref, idx, fw, score)
             tm.add("pnp", t0)
             if ok:
                 rec.T_world_cam = kf.T_world_cam @ invert_T(make_T(R, t))

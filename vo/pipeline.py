@@ -60,6 +60,7 @@ def odometry_params(config: RunConfig) -> OdometryParams:
         ransac_method=config.ransac_method,
         depth_fusion=config.depth_fusion,
         depth_decay=config.depth_decay,
+        pnp_check_ratio=config.pnp_check_ratio,
     )
 
 
