@@ -92,6 +92,14 @@ def check_run_folder(out: Path, doc: dict, expected_frames: list[int]) -> None:
     assert doc["versions"]["trianflow-vo"]
     assert doc["timing_ms_median"]["flow"] > 0
     assert doc["peak_rss_mb"] > 0
+    # frames.tsv: one row per frame with the branch it took, agreeing with the counts
+    import csv
+
+    with open(out / "frames.tsv") as fh:
+        rows = list(csv.DictReader(fh, delimiter="\t"))
+    assert [int(r["frame"]) for r in rows] == expected_frames
+    assert {b: sum(r["branch"] == b for r in rows) for b in counts} == counts
+    assert all(r["reason"] for r in rows if r["branch"] not in ("two-view",))
 
 
 def test_sample_stride3_outputs(sample_stride3):

@@ -22,6 +22,17 @@ from vo.io.trajectory import format_kitti_line, format_tum_line
 from vo.observer import FrameRecord
 
 BRANCHES = ("init", "two-view", "pnp", "rotation", "identity", "failed")
+# frames.tsv: one row per processed frame, which branch it took and why
+LOG_COLUMNS = ("line", "frame", "ref_frame", "branch", "inliers", "scale", "parallax_px", "mean_flow_px",
+               "pnp_ratio", "frame_ms", "reason")
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v)
 
 
 def peak_rss_mb() -> float:
@@ -54,6 +65,8 @@ class RunWriter:
         self._poses = open(self.out_dir / "poses.txt", "w")
         self._frames = open(self.out_dir / "frames.txt", "w")
         self._tum = open(self.out_dir / "trajectory.tum", "w")
+        self._log = open(self.out_dir / "frames.tsv", "w")
+        self._log.write("\t".join(LOG_COLUMNS) + "\n")
         self.counts = {b: 0 for b in BRANCHES}
         self.skipped: list[dict] = []
         self.degraded: list[dict] = []
@@ -76,7 +89,12 @@ class RunWriter:
         self._frames.write(f"{rec.frame_index}\n")
         ts = rec.timestamp if rec.timestamp is not None else float(rec.frame_index)
         self._tum.write(format_tum_line(ts, rec.T_world_cam) + "\n")
-        for f in (self._poses, self._frames, self._tum):
+        st = rec.stats
+        row = (rec.line, rec.frame_index, rec.ref_index, rec.branch, st.get("inliers"), st.get("scale"),
+               st.get("parallax"), st.get("mean_flow"), st.get("pnp_ratio"), st.get("frame_ms"),
+               rec.reason.replace("\t", " "))
+        self._log.write("\t".join(_fmt(v) for v in row) + "\n")
+        for f in (self._poses, self._frames, self._tum, self._log):
             f.flush()
         self.poses.append(np.asarray(rec.T_world_cam, dtype=np.float64).copy())
         self.frame_indices.append(rec.frame_index)
@@ -127,6 +145,6 @@ class RunWriter:
     def close(self, interrupted: bool = False, error: str | None = None) -> None:
         self.status = "failed" if error else ("interrupted" if interrupted else "completed")
         self.error = error
-        for f in (self._poses, self._frames, self._tum):
+        for f in (self._poses, self._frames, self._tum, self._log):
             f.close()
         self._write_json()
