@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vo.baseline.sparse import SparseOdometry, fuse_log_depth, run_sparse
+from vo.baseline.sparse import SparseOdometry, run_sparse
+from vo.depth.fusion import fuse_log_depth
 from vo.eval.evaluate import evaluate
 from vo.pipeline import load_ground_truth
 

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vo.depth.base import DepthSource
+from vo.depth.fusion import fuse_log_depth
 from vo.flow.base import FlowSource
 from vo.flow.masks import flow_scores
 from vo.geometry.epipolar import inlier_score
@@ -250,12 +251,8 @@ class Odometry:
         if scale_ok and not self.depth.is_metric_prior and self.p.depth_fusion:
             # small depth filter: fuse carried and new depth along each ray (in log depth)
             d_new = X_s[:, 2]
-            has = (d_ref > 0) & np.isfinite(w_ref) & (np.abs(np.log(np.maximum(d_ref, 1e-9) / d_new)) < 0.3)
-            log_f = np.log(d_new)
-            log_f[has] = (w_ref[has] * np.log(d_ref[has]) + w_new[has] * np.log(d_new[has])) / (w_ref[has] + w_new[has])
-            X_s = X_s * (np.exp(log_f) / d_new)[:, None]
-            w_out = w_new.copy()
-            w_out[has] = w_ref[has] + w_new[has]
+            d_f, w_out = fuse_log_depth(d_ref, w_ref, d_new, w_new)
+            X_s = X_s * (d_f / d_new)[:, None]
         X_cur = X_s @ R_use.T + t_s
         uv_cur = (X_cur @ self.K.T)[:, :2] / X_cur[:, 2:3]
         self.depth.observe(frame_index, uv_cur, X_cur[:, 2], w_out)

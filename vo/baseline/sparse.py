@@ -25,6 +25,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from vo.depth.fusion import fuse_log_depth  # noqa: F401  (re-exported)
+
 from vo.geometry.pnp import backproject, solve_pnp
 from vo.geometry.relative_pose import estimate_relative_pose
 from vo.geometry.rotation import fit_rotation
@@ -49,35 +51,6 @@ class SparseParams:
     fb_max_px: float = 0.5  # forward-backward distance above which a track is dropped
     # LK tracks are less precise than the dense flow's: 0.25 px beat 0.1 and 0.5 px on KITTI 00 stride 3
     geometry: OdometryParams = OdometryParams(ransac_threshold_px=0.25)
-
-
-def fuse_log_depth(d_ref: np.ndarray, w_ref: np.ndarray, d_new: np.ndarray, w_new: np.ndarray,
-                   max_log_gap: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
-    """Inverse-variance fusion of carried and new depth along each ray, in log depth.
-
-    The rule of :meth:`vo.odometry.Odometry.step`'s depth filter: where a carried
-    depth exists (``d_ref > 0``, finite weight) and agrees with the new one within
-    ``max_log_gap`` in log depth, the two are averaged with their weights and the
-    weights add; elsewhere the new depth and weight are kept.
-
-    Args:
-        d_ref, w_ref: ``(N,)`` carried depth (0 = unknown) and its weight.
-        d_new, w_new: ``(N,)`` new (already scaled) depth, > 0, and its weight.
-
-    Returns:
-        ``(depth (N,), weight (N,))``.
-    """
-    d_ref = np.asarray(d_ref, dtype=np.float64)
-    d_new = np.asarray(d_new, dtype=np.float64)
-    if d_ref.shape != d_new.shape or d_ref.ndim != 1:
-        raise ValueError(f"d_ref and d_new must both be (N,), got {d_ref.shape}, {d_new.shape}")
-    has = (d_ref > 0) & np.isfinite(w_ref) & (w_ref > 0)
-    has[has] &= np.abs(np.log(d_ref[has] / d_new[has])) < max_log_gap
-    log_f = np.log(d_new)
-    log_f[has] = (w_ref[has] * np.log(d_ref[has]) + w_new[has] * np.log(d_new[has])) / (w_ref[has] + w_new[has])
-    w_out = np.asarray(w_new, dtype=np.float64).copy()
-    w_out[has] = w_ref[has] + w_new[has]
-    return np.exp(log_f), w_out
 
 
 class _Timer:
