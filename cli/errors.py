@@ -18,3 +18,6 @@ def user_errors():
         raise click.ClickException(str(exc)) from None
     except FileNotFoundError as exc:
         raise click.ClickException(f"{exc.filename}: no such file or directory") from None
+    except OSError as exc:  # permission denied, is a directory, disk full, ...
+        where = f"{exc.filename}: " if exc.filename else ""
+        raise click.ClickException(f"{where}{exc.strerror or exc}") from None

@@ -78,6 +78,9 @@ def eval_cmd(gt_path, pred_path, align, lengths, json_path, plot_path, max_time_
     from vo.eval import evaluate_files, find_latest_run
     from vo.eval.report import format_report
 
+    for out in (json_path, plot_path):
+        if out is not None and not out.resolve().parent.is_dir():
+            raise click.ClickException(f"{out}: cannot write there, {out.parent} is not an existing folder")
     with user_errors():
         if pred_path is None:
             pred_path = find_latest_run(Path("runs"))
@@ -85,12 +88,18 @@ def eval_cmd(gt_path, pred_path, align, lengths, json_path, plot_path, max_time_
         result = evaluate_files(pred_path, gt_path, align=align, lengths=lengths, max_time_diff=max_time_diff)
         click.echo(format_report(result.metrics))
         if json_path is not None:
-            with open(json_path, "w", encoding="utf-8") as fh:
-                json.dump(result.metrics, fh, indent=2)
-                fh.write("\n")
+            try:
+                with open(json_path, "w", encoding="utf-8") as fh:
+                    json.dump(result.metrics, fh, indent=2)
+                    fh.write("\n")
+            except OSError as exc:
+                raise click.ClickException(f"{json_path}: cannot write: {exc.strerror or exc}") from None
             click.echo(f"wrote {json_path}")
         if plot_path is not None:
             from vo.eval.plot import plot_evaluation
 
-            plot_evaluation(result, plot_path)
+            try:
+                plot_evaluation(result, plot_path)
+            except OSError as exc:
+                raise click.ClickException(f"{plot_path}: cannot write: {exc.strerror or exc}") from None
             click.echo(f"wrote {plot_path}")

@@ -105,7 +105,7 @@ def _numeric_rows(path: Path, what: str) -> tuple[list[list[float]], list[int]]:
     rows: list[list[float]] = []
     lines: list[int] = []
     ncols = None
-    with open(path, encoding="utf-8", errors="replace") as fh:
+    with open(path, encoding="utf-8-sig", errors="replace") as fh:  # -sig: a BOM is not part of the first number
         for lineno, raw in enumerate(fh, start=1):
             text = raw.strip()
             if not text or text.startswith("#"):
