@@ -267,6 +267,23 @@ def test_kitti00_clip_stride3(shared_data, tmp_path):
     # Bound 0.7% = 0.77 m: a yaw bias of 0.5 deg/step already gives 0.89 m, a
     # straight line 9.5 m, scale decay 9.8 m.
     assert m["ate_rmse"] < 0.007 * m["path_length"], m["ate_rmse"]
+    # run followed by eval with no flags beyond --gt and --lengths (the latest run under ./runs/)
+    import os
+    import shutil
+
+    cwd = os.getcwd()
+    try:
+        os.chdir(tmp_path)
+        shutil.copytree(out, tmp_path / "runs" / "kitti00")
+        js = tmp_path / "m.json"
+        r = invoke("eval", "--gt", seq / "poses.txt", "--lengths", "10,20,30,40,50", "--json", js)
+    finally:
+        os.chdir(cwd)
+    assert r.exit_code == 0, r.output
+    metrics = json.loads(js.read_text())
+    assert metrics["num_frames"] == 51 and metrics["num_segments"] > 0
+    assert metrics["ate_rmse"] == pytest.approx(m["ate_rmse"], rel=1e-6)
+    assert 0 < metrics["t_err"] < 5.0  # segment error in %, measured about 2-3%
 
 
 @pytest.mark.slow
