@@ -88,6 +88,9 @@ class Progress:
               help="CPU threads for OpenCV and onnxruntime.")
 @click.option("--dis-preset", type=click.Choice(["fast", "medium", "fine"]), default="medium", show_default=True,
               help="OpenCV DIS flow setting (weight-free path).")
+@click.option("--min-parallax", "min_parallax_px", type=click.FloatRange(0.0, 100.0), default=3.0,
+              show_default=True,
+              help="Median parallax (px, after removing rotation) below which PnP/rotation-only is used.")
 @click.option("--samples", "n_samples", type=click.IntRange(100, 100000), default=6000, show_default=True,
               help="Matches drawn per frame pair.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed (runs are reproducible).")
@@ -99,7 +102,7 @@ class Progress:
 @click.option("--no-plot", is_flag=True, help="Do not write trajectory.png.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar and no warnings.")
 def run(seq, out_dir, stride, start, end, size, intrinsics, calib, flow_model, depth_model, threads, dis_preset,
-        n_samples, seed, gt, rerun_path, rerun_spawn, no_plot, quiet):
+        min_parallax_px, n_samples, seed, gt, rerun_path, rerun_spawn, no_plot, quiet):
     """Estimate the camera trajectory of SEQ.
 
     SEQ is a KITTI odometry sequence folder (image_0/ or image_2/ with calib.txt),
@@ -129,7 +132,7 @@ def run(seq, out_dir, stride, start, end, size, intrinsics, calib, flow_model, d
     cv2.setNumThreads(threads)
     config = RunConfig(seq=seq, out_dir=out_dir, start=start, end=end, stride=stride, intrinsics=intrinsics,
                        calib=calib, size=size, flow_model=flow_model, depth_model=depth_model, threads=threads,
-                       seed=seed, n_samples=n_samples, dis_preset=dis_preset, rerun=rerun_path,
+                       seed=seed, n_samples=n_samples, dis_preset=dis_preset, min_parallax_px=min_parallax_px, rerun=rerun_path,
                        rerun_spawn=rerun_spawn, gt=gt, plot=not no_plot, quiet=quiet)
 
     warnings: list[str] = []
