@@ -76,8 +76,7 @@ def estimate_alignment(
     if mode == "none":
         return identity, True
     n = src.shape[0]
-    spread = lambda p: float(((p - p.mean(0)) ** 2).sum() / max(len(p), 1))  # noqa: E731
-    if n < 3 or spread(src) < _DEGENERATE_SPREAD or spread(dst) < _DEGENERATE_SPREAD:
+    if n < 3 or _spread(src) < _DEGENERATE_SPREAD or _spread(dst) < _DEGENERATE_SPREAD:
         return identity, False
     if mode == "scale":
         den = float((src * src).sum())
@@ -85,6 +84,11 @@ def estimate_alignment(
             return identity, False
         return (float((dst * src).sum()) / den, np.eye(3), np.zeros(3)), True
     return umeyama(src, dst, with_scale=(mode == "7dof"))
+
+
+def _spread(p: np.ndarray) -> float:
+    """Mean squared distance of ``(N, 3)`` points to their centroid."""
+    return float(((p - p.mean(0)) ** 2).sum() / len(p))
 
 
 def apply_alignment(T_world_cam: np.ndarray, s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
