@@ -8,8 +8,12 @@ Structure, coarse to fine:
   warped by the upsampled flow of level ``l+1`` (``grid_sample`` bilinear,
   ``align_corners=True``, zero padding), a cost volume is built with a local search
   range ``d`` (``(2d+1)**2`` channels, mean over feature channels of shifted
-  products, followed by leaky ReLU), and a densely connected flow estimator
-  predicts a flow residual from ``[cost volume, features of image 1, upsampled flow]``;
+  products, followed by leaky ReLU), and a flow estimator of five 3x3 convolutions
+  predicts a flow residual from ``[cost volume, features of image 1, upsampled flow]``.
+  Its connections are set by ``estimator_connections``: ``"pairwise"`` (default, the
+  variant of TrianFlow's released model: each convolution sees the outputs of the two
+  before it, and the context network sees the last one) or ``"dense"`` (the original
+  PWC-Net: each convolution sees every earlier output; about twice the arithmetic);
 * at the output level a context network of dilated convolutions (1, 2, 4, 8, 16, 1)
   refines the flow from the estimator's last features.
 
@@ -42,6 +46,7 @@ class PWCConfig:
     context_dilations: tuple[int, ...] = (1, 2, 4, 8, 16, 1)
     search_range: int = 4
     output_level: int = 2  # finest decoded level: flow at 1/2**output_level
+    estimator_connections: str = "pairwise"  # or "dense" (see the module docstring)
 
     def to_dict(self) -> dict:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
@@ -124,23 +129,44 @@ class FeaturePyramid(nn.Module):
 
 
 class DenseEstimator(nn.Module):
-    """Densely connected flow estimator: each conv sees all earlier outputs."""
+    """Flow estimator. ``connections="dense"``: each conv sees the input and all
+    earlier outputs (original PWC-Net). ``"pairwise"``: conv k sees the outputs of
+    convs k-2 and k-1 (the first two see the input and conv 0), the flow is predicted
+    from the last two outputs, and the features handed on are the last output."""
 
-    def __init__(self, cin: int, channels: tuple[int, ...]):
+    def __init__(self, cin: int, channels: tuple[int, ...], connections: str = "dense"):
         super().__init__()
+        if connections not in ("dense", "pairwise"):
+            raise ValueError(f"estimator_connections must be 'dense' or 'pairwise', got {connections!r}")
+        if connections == "pairwise" and len(channels) < 2:
+            raise ValueError("a pairwise estimator needs at least two convolutions")
+        self.connections = connections
         convs = []
-        c = cin
-        for cout in channels:
-            convs.append(_conv(c, cout))
-            c += cout
+        if connections == "dense":
+            c = cin
+            for cout in channels:
+                convs.append(_conv(c, cout))
+                c += cout
+            self.predict = _conv(c, 2, act=False)
+            self.out_channels = c
+        else:
+            for k, cout in enumerate(channels):
+                c_in = cin if k == 0 else channels[0] if k == 1 else channels[k - 2] + channels[k - 1]
+                convs.append(_conv(c_in, cout))
+            self.predict = _conv(channels[-2] + channels[-1], 2, act=False)
+            self.out_channels = channels[-1]
         self.convs = nn.ModuleList(convs)
-        self.predict = _conv(c, 2, act=False)
-        self.out_channels = c
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        for conv in self.convs:
-            x = torch.cat((x, conv(x)), dim=1)
-        return x, self.predict(x)
+        if self.connections == "dense":
+            for conv in self.convs:
+                x = torch.cat((x, conv(x)), dim=1)
+            return x, self.predict(x)
+        outs = [self.convs[0](x)]
+        outs.append(self.convs[1](outs[0]))
+        for conv in self.convs[2:]:
+            outs.append(conv(torch.cat((outs[-2], outs[-1]), dim=1)))
+        return outs[-1], self.predict(torch.cat((outs[-2], outs[-1]), dim=1))
 
 
 class ContextNetwork(nn.Module):
@@ -178,7 +204,7 @@ class PWCNet(nn.Module):
         self.levels = list(range(len(cfg.pyramid_channels), cfg.output_level - 1, -1))
         for lvl in self.levels:
             c_feat = cfg.pyramid_channels[lvl - 1]
-            estimators.append(DenseEstimator(n_cost + c_feat + 2, cfg.estimator_channels))
+            estimators.append(DenseEstimator(n_cost + c_feat + 2, cfg.estimator_channels, cfg.estimator_connections))
         self.estimators = nn.ModuleList(estimators)
         self.context = ContextNetwork(estimators[-1].out_channels + 2, cfg.context_channels,
                                       cfg.context_dilations)

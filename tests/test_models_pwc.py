@@ -129,3 +129,27 @@ def test_overfit_one_real_pair_reduces_warping_error(sample_seq):
     # seen on this pair: ~0.29 of the zero-flow error, ~0.22 of the initial error
     assert err_final < 0.5 * err_zero, (err_final, err_zero)
     assert err_final < 0.5 * err_init, (err_final, err_init)
+
+
+@pytest.mark.parametrize("connections", ["pairwise", "dense"])
+def test_estimator_connections(connections):
+    """Both estimator variants give flow of the right shape at every scale; the
+    pairwise one (TrianFlow's released variant, the default) is the lighter."""
+    cfg = PWCConfig(pyramid_channels=SMALL.pyramid_channels, estimator_channels=SMALL.estimator_channels,
+                    estimator_connections=connections)
+    net = PWCNet(cfg).eval()
+    x = torch.rand(1, 3, 64, 128)
+    with torch.no_grad():
+        flows = net(x, x)
+    assert [tuple(f.shape) for f in flows] == [(1, 2, 64 // 2 ** k, 128 // 2 ** k) for k in range(2, 7)]
+    assert all(torch.isfinite(f).all() for f in flows)
+    n_params = sum(p.numel() for p in net.parameters())
+    other = "dense" if connections == "pairwise" else "pairwise"
+    other_net = PWCNet(PWCConfig.from_dict({**cfg.to_dict(), "estimator_connections": other}))
+    n_other = sum(p.numel() for p in other_net.parameters())
+    assert (n_params < n_other) == (connections == "pairwise")
+
+
+def test_unknown_connections_rejected():
+    with pytest.raises(ValueError, match="estimator_connections"):
+        PWCNet(PWCConfig(estimator_connections="sparse"))
