@@ -241,8 +241,8 @@ def _markdown(res: dict) -> str:
         f"`{res['command']}` on {res['machine']} ({res['cpu_count']} cores), {res['threads']} threads, "
         f"{res['pairs']} pairs of `{res['seq']}`, random weights, paper-size architectures "
         f"(PWC-Net fw+bw {res['gflop']['flow_fw_bw']:.0f} GFLOP, depth {res['gflop']['depth']:.0f} GFLOP per call). "
-        f"Load average at start: {res['load_average']}. Other engineers were using the same 2 CPUs: "
-        "absolute numbers are pessimistic, ratios are more reliable.",
+        f"Load average at start: {res['load_average']} (a shared machine: ratios measured in one run are more "
+        "reliable than absolute times).",
         "",
         "| stage (median ms per pair) | ours: onnxruntime | PyTorch eager (research style) |",
         "|---|---:|---:|",
@@ -273,13 +273,13 @@ def _markdown(res: dict) -> str:
     g = res["gflop"]["flow_fw_bw"] + res["gflop"]["depth"]
     lines += [
         "",
-        f"Why the target is out of reach at this size: one pair costs {g:.0f} GFLOP of fp32 arithmetic "
-        f"(flow fw+bw {res['gflop']['flow_fw_bw']:.0f}, depth {res['gflop']['depth']:.0f}); 300 ms would need "
-        f"{g / 0.3:.0f} GFLOP/s, above the fp32 peak of two AVX-512 cores (2 x 64 flop/cycle x ~2.5-3 GHz, "
-        "~320-380 GFLOP/s); real convolutions reach about half of peak. Most of the flow cost is at the finest "
-        "decoded level (1/4 resolution): its dense estimator and the context network, then the cost "
-        "volumes (memory-bound). Faster settings of onnxruntime change little (table above). What would "
-        "meet it, none applied silently: int8 (VNNI/AMX) quantisation of the convolutions, a lower "
+        f"What bounds it: one pair costs {g:.0f} GFLOP of fp32 arithmetic (flow fw+bw "
+        f"{res['gflop']['flow_fw_bw']:.0f}, depth {res['gflop']['depth']:.0f}); 300 ms needs {g / 0.3:.0f} GFLOP/s "
+        f"sustained, against an fp32 peak of roughly 320-380 GFLOP/s for two AVX-512 cores (2 x 64 flop/cycle x "
+        f"~2.5-3 GHz) of which convolutions reach about half: we sustain {g / (o['total'] / 1000.0):.0f} GFLOP/s. "
+        "Most of the flow cost is at the finest decoded level (1/4 resolution): its estimator and the context "
+        "network, then the cost volumes (memory-bound). onnxruntime settings change little (table above). "
+        "What would meet it, none applied silently: int8 (VNNI/AMX) quantisation of the convolutions, a lower "
         "working size, or a lighter flow decoder; each changes accuracy and needs trained weights to judge.",
         "",
     ]
