@@ -76,27 +76,25 @@ def _worker(job: dict) -> dict:
 
     seq = Path(job["seq"])
     t0 = time.perf_counter()
+    out = Path(job["out_dir"])
     if job["method"] == "dense":
         from vo.config import RunConfig
         from vo.pipeline import run
 
-        out = Path(job["out_dir"])
         cfg = RunConfig(seq=seq, out_dir=out, stride=job["stride"], end=job["end"], seed=job["seed"],
                         threads=THREADS, plot=False, quiet=True, **job.get("overrides", {}))
         summary = run(cfg)
-        poses = read_trajectory(out / "poses.txt").poses
-        frames = np.loadtxt(out / "frames.txt", dtype=np.int64, ndmin=1)
-        res = {"branch_counts": summary["branch_counts"], "timing_ms_median": summary["timing_ms_median"],
-               "frames_processed": summary["frames_processed"], "fps": summary["fps"],
-               "elapsed_s": summary["elapsed_s"]}
     else:
         from vo.baseline.sparse import SparseParams, run_sparse
 
         base = SparseParams()
         params = dataclasses.replace(base, geometry=dataclasses.replace(base.geometry, seed=job["seed"]))
-        r = run_sparse(seq, stride=job["stride"], end=job["end"], params=params)
-        poses, frames = r["poses"], r["frames"]
-        res = {k: r[k] for k in ("branch_counts", "timing_ms_median", "frames_processed", "fps", "elapsed_s")}
+        summary = run_sparse(seq, out, stride=job["stride"], end=job["end"], params=params)
+    poses = read_trajectory(out / "poses.txt").poses
+    frames = np.loadtxt(out / "frames.txt", dtype=np.int64, ndmin=1)
+    res = {"branch_counts": summary["branch_counts"], "timing_ms_median": summary["timing_ms_median"],
+           "frames_processed": summary["frames_processed"], "fps": summary["fps"],
+           "elapsed_s": summary["elapsed_s"]}
     wall = time.perf_counter() - t0
     gt_poses, gt_frames = load_ground_truth(seq / "poses.txt")
     m = evaluate(poses, frames, gt_poses, gt_frames, align="7dof", lengths=job["lengths"], step=1)

@@ -7,18 +7,7 @@ from pathlib import Path
 import click
 
 from cli.errors import user_errors
-
-
-def _parse_size(ctx, param, value):
-    if value is None:
-        return None
-    try:
-        h, w = (int(v) for v in value.lower().split("x"))
-    except ValueError:
-        raise click.BadParameter(f"{value!r} is not HxW (e.g. 256x832)") from None
-    if h <= 0 or w <= 0 or h % 64 or w % 64:
-        raise click.BadParameter(f"{value!r}: both sides must be positive multiples of 64")
-    return h, w
+from cli.options import parse_size
 
 
 @click.command("export")
@@ -26,7 +15,7 @@ def _parse_size(ctx, param, value):
               help="Checkpoint file (trianflow-vo format, see models/checkpoint.py).")
 @click.option("--random-init", is_flag=True, help="Export freshly initialised networks (for testing).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of --random-init and of the check input.")
-@click.option("--size", callback=_parse_size, metavar="HxW",
+@click.option("--size", callback=parse_size, metavar="HxW",
               help="Fixed input size of the exported graphs. Default: the checkpoint's input size "
                    "(256x832 with --random-init).")
 @click.option("--out-dir", required=True, type=click.Path(file_okay=False, path_type=Path),

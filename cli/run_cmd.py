@@ -10,18 +10,7 @@ from pathlib import Path
 import click
 
 from cli.errors import user_errors
-
-
-def _parse_size(ctx, param, value):
-    if value is None:
-        return None
-    try:
-        h, w = (int(v) for v in value.lower().split("x"))
-    except ValueError:
-        raise click.BadParameter(f"expected HxW, e.g. 256x832, got {value!r}") from None
-    if h < 64 or w < 64 or h % 32 or w % 32:
-        raise click.BadParameter(f"both sides must be multiples of 32 and at least 64, got {value!r}")
-    return h, w
+from cli.options import parse_size
 
 
 def _parse_intrinsics(ctx, param, value):
@@ -74,7 +63,7 @@ class Progress:
 @click.option("--stride", type=int, default=1, show_default=True, help="Use every N-th frame.")
 @click.option("--start", type=int, default=0, show_default=True, help="First source frame index.")
 @click.option("--end", type=int, default=None, help="Stop before this source frame index.")
-@click.option("--size", callback=_parse_size, default=None, metavar="HxW",
+@click.option("--size", callback=parse_size, default=None, metavar="HxW",
               help="Working resolution (default 256x832 for KITTI-like frames, else long side <= 832, multiples of 64).")
 @click.option("--intrinsics", callback=_parse_intrinsics, default=None, metavar="FX,FY,CX,CY",
               help="Camera intrinsics at the source resolution (overrides the sequence's calibration).")

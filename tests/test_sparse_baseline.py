@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
 from vo.baseline.sparse import SparseOdometry, run_sparse
+from vo.io.trajectory import read_trajectory
 from vo.depth.fusion import fuse_log_depth
 from vo.eval.evaluate import evaluate
 from vo.pipeline import load_ground_truth
@@ -39,17 +42,22 @@ def test_static_images_give_identity():
         np.testing.assert_array_equal(r.T_world_cam, np.eye(4))
 
 
-def test_sample_one_pose_per_frame_and_sane(sample_seq):
-    r = run_sparse(sample_seq, end=10)
-    assert r["poses"].shape == (10, 4, 4)
-    np.testing.assert_array_equal(r["frames"], np.arange(10))
-    np.testing.assert_allclose(r["poses"][0], np.eye(4))
-    assert sum(r["branch_counts"].values()) == 10
-    assert r["branch_counts"].get("two-view", 0) >= 7  # KITTI driving: two-view geometry nearly always
+def test_sample_one_pose_per_frame_and_sane(sample_seq, tmp_path):
+    summary = run_sparse(sample_seq, tmp_path / "run", end=10)
+    poses = read_trajectory(tmp_path / "run" / "poses.txt").poses
+    frames = np.loadtxt(tmp_path / "run" / "frames.txt", dtype=np.int64)
+    assert poses.shape == (10, 4, 4)
+    np.testing.assert_array_equal(frames, np.arange(10))
+    np.testing.assert_allclose(poses[0], np.eye(4))
+    counts = summary["branch_counts"]
+    assert sum(counts.values()) == 10
+    assert counts.get("two-view", 0) >= 7  # KITTI driving: two-view geometry nearly always
+    doc = json.loads((tmp_path / "run" / "run.json").read_text())  # the same run folder as the dense path
+    assert doc["status"] == "completed" and doc["odometry"]["name"] == "sparse"
     gt, gf = load_ground_truth(sample_seq / "poses.txt")
-    m = evaluate(r["poses"], r["frames"], gt, gf, lengths=[1.0])
+    m = evaluate(poses, frames, gt, gf, lengths=[1.0])
     # about 8 m of straight driving: measured 0.9% of the path after Sim(3); a broken tracker is far off
     assert m["ate_rmse"] < 0.03 * m["path_length"]
     # forward motion along +z of the camera, not sideways
-    t = r["poses"][-1][:3, 3]
+    t = poses[-1][:3, 3]
     assert abs(t[2]) > 2.0 * np.hypot(t[0], t[1])

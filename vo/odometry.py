@@ -8,7 +8,7 @@ It has no I/O; :mod:`vo.pipeline` feeds it frames and writes its results.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -24,6 +24,7 @@ from vo.geometry.scale import align_scale
 from vo.geometry.se3 import invert_T, make_T
 from vo.geometry.triangulation import triangulate_midpoint
 from vo.observer import FrameRecord
+from vo.timing import StageTimer
 
 
 @dataclass(frozen=True)
@@ -56,16 +57,6 @@ class _Keyframe:
     image: np.ndarray
     prepared: object
     T_world_cam: np.ndarray
-
-
-@dataclass
-class _Timer:
-    ms: dict = field(default_factory=dict)
-
-    def add(self, name: str, t0: float) -> float:
-        t1 = time.perf_counter()
-        self.ms[name] = self.ms.get(name, 0.0) + (t1 - t0) * 1000.0
-        return t1
 
 
 class Odometry:
@@ -128,7 +119,7 @@ class Odometry:
     # -- main step ------------------------------------------------------------
     def step(self, frame_index: int, timestamp: float | None, image: np.ndarray) -> FrameRecord:
         """Process one working-resolution frame ``(h, w, 3)`` uint8 BGR."""
-        tm = _Timer()
+        tm = StageTimer()
         t0 = time.perf_counter()
         prepared = self.flow.prepare(image)
         t0 = tm.add("prepare", t0)

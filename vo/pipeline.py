@@ -77,6 +77,7 @@ def run(
     config: RunConfig,
     observers: Iterable[Observer] = (),
     on_warning: Callable[[str], None] | None = None,
+    make_odometry: Callable[[np.ndarray, tuple[int, int], RunConfig], object] | None = None,
 ) -> dict:
     """Process ``config.seq`` and write ``config.out_dir``; returns the ``run.json`` summary.
 
@@ -85,6 +86,10 @@ def run(
     :class:`vo.observer.FrameRecord`; ``on_warning`` receives one-line messages
     about degraded frames (skipped, PnP, rotation only). On KeyboardInterrupt the
     outputs are closed with ``status: interrupted`` and the interrupt re-raised.
+
+    ``make_odometry(K, (h, w), config)`` replaces the TrianFlow odometry with another
+    object whose ``step(frame_index, timestamp, image)`` returns a FrameRecord (e.g.
+    the sparse baseline, :mod:`vo.baseline.sparse`); it should have ``describe()``.
     """
     warn = on_warning or (lambda msg: None)
     seq = open_sequence(config.seq, intrinsics=config.intrinsics, calib=config.calib, start=config.start,
@@ -94,9 +99,15 @@ def run(
     if h <= 0 or w <= 0:
         raise InputError(f"bad working size {h}x{w}")
     K = scale_intrinsics(seq.K, (H, W), (h, w))
-    flow = make_flow_source(config, (h, w))
-    depth = make_depth_source(config, (h, w))
-    odo = Odometry(K, (h, w), flow, depth, odometry_params(config))
+    if make_odometry is None:
+        flow = make_flow_source(config, (h, w))
+        depth = make_depth_source(config, (h, w))
+        odo = Odometry(K, (h, w), flow, depth, odometry_params(config))
+        method = {"odometry": "trianflow", "flow_source": flow.describe(), "depth_source": depth.describe(),
+                  "params": odometry_params(config).__dict__}
+    else:
+        odo = make_odometry(K, (h, w), config)
+        method = {"odometry": getattr(odo, "describe", lambda: {"name": type(odo).__name__})()}
     gt = None
     if config.gt is not None:
         gt = load_ground_truth(config.gt)
@@ -107,9 +118,7 @@ def run(
                      "source_size_hw": [H, W], "K_source": seq.K.tolist()},
         "working_size_hw": [h, w],
         "K_working": K.tolist(),
-        "flow_source": flow.describe(),
-        "depth_source": depth.describe(),
-        "params": odometry_params(config).__dict__,
+        **method,
         "pose_convention": "poses.txt: T_world_cam (camera-to-world), first frame identity, KITTI 3x4 row-major",
     }
     writer = RunWriter(config.out_dir, info)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -34,6 +35,7 @@ from vo.geometry.scale import align_scale
 from vo.geometry.se3 import invert_T, make_T
 from vo.geometry.triangulation import triangulate_midpoint
 from vo.observer import FrameRecord
+from vo.timing import StageTimer
 from vo.odometry import OdometryParams
 
 
@@ -51,16 +53,6 @@ class SparseParams:
     fb_max_px: float = 0.5  # forward-backward distance above which a track is dropped
     # LK tracks are less precise than the dense flow's: 0.25 px beat 0.1 and 0.5 px on KITTI 00 stride 3
     geometry: OdometryParams = OdometryParams(ransac_threshold_px=0.25)
-
-
-class _Timer:
-    def __init__(self):
-        self.ms: dict = {}
-
-    def add(self, name: str, t0: float) -> float:
-        t1 = time.perf_counter()
-        self.ms[name] = self.ms.get(name, 0.0) + (t1 - t0) * 1000.0
-        return t1
 
 
 class SparseOdometry:
@@ -145,7 +137,7 @@ class SparseOdometry:
     # -- main step ------------------------------------------------------------
     def step(self, frame_index: int, timestamp: float | None, image: np.ndarray) -> FrameRecord:
         """Process one working-resolution frame ``(h, w, 3)`` uint8 BGR (or ``(h, w)`` gray)."""
-        tm = _Timer()
+        tm = StageTimer()
         t0 = time.perf_counter()
         gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         t0 = tm.add("prepare", t0)
@@ -240,7 +232,7 @@ class SparseOdometry:
         tm.add("bookkeeping", t0)
         return self._finish(rec, tm)
 
-    def _small_motion(self, rec: FrameRecord, why: str, R_rot: np.ndarray, tm: _Timer) -> FrameRecord:
+    def _small_motion(self, rec: FrameRecord, why: str, R_rot: np.ndarray, tm: StageTimer) -> FrameRecord:
         """PnP from the keyframe depth of the tracks when there is some; else rotation only."""
         t0 = time.perf_counter()
         has = (self.depth > 0) & (self.weight > 0)
@@ -262,61 +254,30 @@ class SparseOdometry:
         rec.branch, rec.reason = "rotation", why
         return self._finish(rec, tm)
 
-    def _fail(self, rec: FrameRecord, why: str, tm: _Timer) -> FrameRecord:
+    def _fail(self, rec: FrameRecord, why: str, tm: StageTimer) -> FrameRecord:
         rec.branch, rec.reason = "failed", why + "; pose kept from the previous frame"
         rec.T_world_cam = self.T_world_last
         return self._finish(rec, tm)
 
-    def _finish(self, rec: FrameRecord, tm: _Timer) -> FrameRecord:
+    def describe(self) -> dict:
+        from dataclasses import asdict
+
+        return {"name": "sparse", "tracker": "shi-tomasi + pyramidal lucas-kanade", "params": asdict(self.p)}
+
+    def _finish(self, rec: FrameRecord, tm: StageTimer) -> FrameRecord:
         self.T_world_last = rec.T_world_cam
         rec.stats["ms"] = tm.ms
         return rec
 
 
-def run_sparse(seq_path, *, start: int = 0, end: int | None = None, stride: int = 1, size=None,
+def run_sparse(seq_path, out_dir, *, start: int = 0, end: int | None = None, stride: int = 1, size=None,
                params: SparseParams = SparseParams()) -> dict:
-    """Drive :class:`SparseOdometry` over a sequence (as :func:`vo.pipeline.run` drives the dense one).
+    """Run :class:`SparseOdometry` over a sequence through :func:`vo.pipeline.run`, so it
+    writes the same run folder (``poses.txt``, ``frames.txt``, ``run.json``, ...) to
+    ``out_dir``. Returns the ``run.json`` summary."""
+    from vo.config import RunConfig
+    from vo.pipeline import run
 
-    Returns a dict: ``poses`` ``(N, 4, 4)`` camera-to-world, ``frames`` ``(N,)``,
-    ``branch_counts``, ``timing_ms_median`` per stage, ``frames_processed``,
-    ``elapsed_s`` and ``fps`` (wall time, decoding included), ``skipped``.
-    """
-    from vo.camera import scale_intrinsics, working_size
-    from vo.frames import FrameSkip
-    from vo.io.sequence import Prefetcher, open_sequence
-
-    seq = open_sequence(seq_path, start=start, end=end, stride=stride)
-    H, W = seq.image_size
-    h, w = working_size(H, W, size)
-    K = scale_intrinsics(seq.K, (H, W), (h, w))
-    odo = SparseOdometry(K, (h, w), params)
-    poses, frames, counts, stage_ms, skipped = [], [], {}, {}, []
-    t_start = time.perf_counter()
-    with Prefetcher(seq, depth=2) as items:
-        for item in items:
-            if isinstance(item, FrameSkip):
-                skipped.append({"frame": item.index, "source": item.source, "reason": item.reason})
-                continue
-            t0 = time.perf_counter()
-            img = item.image
-            if img.shape[:2] != (h, w):
-                img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
-            resize_ms = (time.perf_counter() - t0) * 1000.0
-            rec = odo.step(item.index, item.timestamp, img)
-            rec.stats["ms"]["resize"] = resize_ms
-            poses.append(rec.T_world_cam.copy())
-            frames.append(item.index)
-            counts[rec.branch] = counts.get(rec.branch, 0) + 1
-            for k, v in rec.stats["ms"].items():
-                stage_ms.setdefault(k, []).append(v)
-    elapsed = time.perf_counter() - t_start
-    return {
-        "poses": np.stack(poses) if poses else np.zeros((0, 4, 4)),
-        "frames": np.asarray(frames, dtype=np.int64),
-        "branch_counts": counts,
-        "timing_ms_median": {k: float(np.median(v)) for k, v in stage_ms.items()},
-        "frames_processed": len(poses),
-        "elapsed_s": elapsed,
-        "fps": len(poses) / elapsed if elapsed > 0 else None,
-        "skipped": skipped,
-    }
+    config = RunConfig(seq=Path(seq_path), out_dir=Path(out_dir), start=start, end=end, stride=stride, size=size,
+                       seed=params.geometry.seed, plot=False, quiet=True)
+    return run(config, make_odometry=lambda K, size_hw, cfg: SparseOdometry(K, size_hw, params))
