@@ -1,0 +1,169 @@
+"""Unit tests of the smaller pieces: scale alignment, PnP, rotation fit, masks,
+working size and intrinsics scaling, the triangulated depth store."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from synthetic import K_TEST, project, two_view_scene
+from vo.camera import scale_intrinsics, working_size
+from vo.depth.triangulated import TriangulatedDepth
+from vo.flow.masks import fb_distance, flow_scores, occlusion_mask, range_map
+from vo.geometry.pnp import backproject, solve_pnp
+from vo.geometry.rotation import fit_rotation
+from vo.geometry.scale import align_scale, weighted_median
+from vo.geometry.se3 import rodrigues, rotation_angle
+
+
+# --------------------------------------------------------------------------- scale
+def test_weighted_median():
+    assert weighted_median(np.array([1.0, 2.0, 3.0]), np.ones(3)) == 2.0
+    # a heavy weight pulls the median to its value
+    assert weighted_median(np.array([1.0, 2.0, 3.0]), np.array([1.0, 1.0, 10.0])) == 3.0
+
+
+def test_align_scale_recovers_known_factor_with_outliers():
+    rng = np.random.default_rng(0)
+    d_tri = rng.uniform(2.0, 40.0, 1000)
+    d_ref = 3.7 * d_tri * np.exp(rng.normal(0, 0.02, 1000))
+    bad = rng.choice(1000, 300, replace=False)  # 30% gross outliers
+    d_ref[bad] = rng.uniform(0.5, 100.0, 300)
+    d_ref[:50] = 0.0  # unknown reference depth is ignored
+    s, ok = align_scale(d_tri, d_ref)
+    assert ok and s == pytest.approx(3.7, rel=0.01)
+    # weights: the outliers get no say when they have no weight
+    w = np.ones(1000)
+    w[bad] = 0.0
+    s_w, ok = align_scale(d_tri, d_ref, weights=w)
+    assert ok and s_w == pytest.approx(3.7, rel=0.005)
+
+
+def test_align_scale_too_few_points():
+    s, ok = align_scale(np.array([1.0, 2.0]), np.array([2.0, 4.0]), min_points=10)
+    assert not ok
+    with pytest.raises(ValueError):
+        align_scale(np.ones(3), np.ones(4))
+
+
+# --------------------------------------------------------------------------- PnP
+def test_pnp_exact_and_with_outliers():
+    R = rodrigues(np.array([0.01, -0.03, 0.02]))
+    t = np.array([0.2, -0.1, 1.5])
+    pts1, pts2, X1, _, _ = two_view_scene(n=400, R=R, t=t, seed=2)
+    (R_est, t_est, inl), ok = solve_pnp(X1, pts2, K_TEST)
+    assert ok and inl.all()
+    assert np.degrees(rotation_angle(R_est.T @ R)) < 1e-4
+    assert np.allclose(t_est, t, atol=1e-5)  # metric: the scale comes from the depth
+    rng = np.random.default_rng(1)
+    noisy = pts2 + rng.normal(0, 0.3, pts2.shape)
+    out = rng.choice(400, 120, replace=False)
+    noisy[out] = rng.uniform([0, 0], [832, 256], (120, 2))
+    (R_est, t_est, inl), ok = solve_pnp(X1, noisy, K_TEST, reproj_px=1.0)
+    assert ok
+    assert np.degrees(rotation_angle(R_est.T @ R)) < 0.1
+    assert np.linalg.norm(t_est - t) < 0.02 * np.linalg.norm(t)
+    assert inl[out].mean() < 0.1
+
+
+def test_pnp_too_few_points_is_invalid_not_an_error():
+    _, ok = solve_pnp(np.ones((5, 3)), np.ones((5, 2)), K_TEST)
+    assert not ok
+    with pytest.raises(ValueError):
+        solve_pnp(np.ones((10, 3)), np.ones((9, 2)), K_TEST)
+
+
+def test_backproject_inverts_projection():
+    _, _, X1, _, _ = two_view_scene(n=50)
+    pts = project(K_TEST, X1)
+    assert np.allclose(backproject(pts, X1[:, 2], K_TEST), X1)
+
+
+# --------------------------------------------------------------------------- rotation fit
+def test_fit_rotation_pure_rotation_has_no_parallax():
+    R = rodrigues(np.array([0.02, 0.04, -0.01]))
+    pts1, _, X1, _, _ = two_view_scene(n=300, R=R, t=np.zeros(3))
+    pts2 = project(K_TEST, X1 @ R.T)
+    R_est, par = fit_rotation(pts1, pts2, K_TEST)
+    assert np.degrees(rotation_angle(R_est.T @ R)) < 1e-6
+    assert par.max() < 1e-6
+
+
+def test_fit_rotation_leaves_parallax_of_translation():
+    pts1, pts2, _, _, _ = two_view_scene(n=300, R=np.eye(3), t=np.array([0.3, 0.0, 0.0]), depth=(5, 10))
+    _, par = fit_rotation(pts1, pts2, K_TEST)
+    # sideways motion of 0.3 at 5-10 m: 14-29 px of disparity; the rotation fit absorbs the mean
+    # part, the depth-dependent rest stays as parallax
+    assert np.median(par) > 2.0
+
+
+# --------------------------------------------------------------------------- masks
+def test_forward_backward_distance_of_consistent_flows_is_zero():
+    h, w = 32, 48
+    fw = np.zeros((h, w, 2), np.float32)
+    fw[..., 0] = 3.0
+    bw = -fw
+    d = fb_distance(fw, bw)
+    assert np.allclose(d[:, : w - 4], 0.0, atol=1e-5)
+    # inconsistent backward flow: distance equals the inconsistency
+    assert np.allclose(fb_distance(fw, np.zeros_like(fw))[:, : w - 4], 3.0, atol=1e-5)
+
+
+def test_range_map_and_occlusion_of_a_shift():
+    h, w = 32, 64
+    fw = np.zeros((h, w, 2), np.float32)
+    fw[..., 0] = 4.0  # frame b is frame a shifted 4 px right
+    bw = -fw
+    rm = range_map(np.zeros((h, w, 2), np.float32))
+    assert np.allclose(rm, 1.0)  # identity: every pixel receives exactly one
+    m_o = occlusion_mask(fw, bw)
+    # pixels whose forward flow leaves frame b (the last 4 columns) are invalid, the rest valid
+    assert m_o[:, : w - 5].min() == 1.0
+    assert m_o[:, w - 3:].max() == 0.0
+    d_fb, m_s, m_o2 = flow_scores(fw, bw)
+    assert np.allclose(m_s[:, : w - 5], 10.0, atol=1e-3)  # 1 / (0.1 + 0)
+    assert np.array_equal(m_o, m_o2)
+
+
+# --------------------------------------------------------------------------- camera
+def test_working_size():
+    assert working_size(376, 1241) == (256, 832)  # KITTI 00-02
+    assert working_size(370, 1226) == (256, 832)  # KITTI 04-12
+    assert working_size(480, 640) == (512, 640)
+    h, w = working_size(1080, 1920)
+    assert w == 832 and h % 64 == 0 and w % 64 == 0
+    assert working_size(376, 1241, (128, 384)) == (128, 384)
+
+
+def test_scale_intrinsics_maps_points_like_resize():
+    K = np.array([[718.856, 0.0, 607.1928], [0.0, 718.856, 185.2157], [0.0, 0.0, 1.0]])
+    K2 = scale_intrinsics(K, (376, 1241), (256, 832))
+    X = np.array([[1.0, -0.5, 10.0], [-3.0, 1.0, 20.0]])
+    u = project(K, X)
+    u2 = project(K2, X)
+    sx, sy = 832 / 1241, 256 / 376
+    assert np.allclose(u2[:, 0], (u[:, 0] + 0.5) * sx - 0.5)
+    assert np.allclose(u2[:, 1], (u[:, 1] + 0.5) * sy - 0.5)
+    with pytest.raises(ValueError):
+        scale_intrinsics(np.eye(4), (1, 1), (1, 1))
+
+
+# --------------------------------------------------------------------------- depth store
+def test_triangulated_depth_store():
+    store = TriangulatedDepth((10, 20), keep=2)
+    assert store.predict(0) is None
+    store.observe(0, np.array([[3.2, 4.6], [3.4, 4.8], [15.0, 2.0]]), np.array([5.0, 7.0, 9.0]),
+                  np.array([1.0, 2.0, 1.0]))
+    d = store.predict(0)
+    assert d.shape == (10, 20)
+    assert d[5, 3] == 7.0  # two points round to (x=3, y=5): the higher weight wins
+    assert d[2, 15] == 9.0
+    assert (d > 0).sum() == 2
+    assert store.weight(0)[5, 3] == 2.0
+    # outside the image, non-finite or non-positive depths are dropped
+    store.observe(1, np.array([[-1.0, 0.0], [1.0, 1.0], [2.0, 2.0]]), np.array([1.0, np.nan, -1.0]), np.ones(3))
+    assert (store.predict(1) > 0).sum() == 0
+    store.observe(2, np.array([[1.0, 1.0]]), np.array([1.0]), np.ones(1))
+    assert store.predict(0) is None  # only the newest `keep` frames are kept
+    store.forget(2)
+    assert store.predict(2) is None
