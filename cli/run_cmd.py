@@ -28,13 +28,17 @@ def _parse_intrinsics(ctx, param, value):
 class Progress:
     """One status line on stderr: frames done, frames/s, branch counts."""
 
-    def __init__(self, total: int, enabled: bool):
-        self.total = total
+    def __init__(self, enabled: bool):
+        self.total = 0
         self.enabled = enabled and sys.stderr.isatty()
         self.plain = enabled and not self.enabled
         self.counts: dict[str, int] = {}
         self.t0 = time.perf_counter()
         self.n = 0
+
+    def on_start(self, total: int) -> None:
+        self.total = total
+        self.t0 = time.perf_counter()
 
     def on_frame(self, rec) -> None:
         self.n += 1
@@ -130,18 +134,13 @@ def run(seq, out_dir, stride, start, end, size, intrinsics, calib, flow_model, d
         warnings.append(msg)
 
     with user_errors():
-        from vo.io.sequence import open_sequence
-
-        total = len(open_sequence(seq, intrinsics=intrinsics, calib=calib, start=start, end=end, stride=stride))
-        progress = Progress(total, enabled=not quiet)
+        progress = Progress(enabled=not quiet)  # closed by the pipeline, like every observer
         try:
             summary = run_pipeline(config, observers=[progress], on_warning=warn)
         except KeyboardInterrupt:
-            progress.close()
             click.echo(f"interrupted: the trajectory so far is in {out_dir}", err=True)
             sys.exit(130)
         finally:
-            progress.close()
             if not quiet:
                 _print_warnings(warnings)
     c = summary["branch_counts"]

@@ -53,7 +53,8 @@ class FrameRecord:
 
 class Observer(Protocol):
     """Receives every processed frame, in order. ``close`` is called once at the end
-    (also after an interruption, with ``interrupted=True``)."""
+    (also after an interruption, with ``interrupted=True``). An observer may also
+    define ``on_start(n_frames)``: it is called once, before the first frame."""
 
     def on_frame(self, record: FrameRecord) -> None: ...
 

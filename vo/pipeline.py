@@ -83,7 +83,8 @@ def run(
 
     Frames are streamed (decoded one ahead in a background thread) and every pose
     is written as soon as it is known. ``observers`` receive each
-    :class:`vo.observer.FrameRecord`; ``on_warning`` receives one-line messages
+    :class:`vo.observer.FrameRecord` (and, if they have ``on_start(n)``, the number of
+    frames selected before the first one); ``on_warning`` receives one-line messages
     about degraded frames (skipped, PnP, rotation only). On KeyboardInterrupt the
     outputs are closed with ``status: interrupted`` and the interrupt re-raised.
 
@@ -102,9 +103,10 @@ def run(
     if make_odometry is None:
         flow = make_flow_source(config, (h, w))
         depth = make_depth_source(config, (h, w))
-        odo = Odometry(K, (h, w), flow, depth, odometry_params(config))
+        params = odometry_params(config)
+        odo = Odometry(K, (h, w), flow, depth, params)
         method = {"odometry": "trianflow", "flow_source": flow.describe(), "depth_source": depth.describe(),
-                  "params": odometry_params(config).__dict__}
+                  "params": params.__dict__}
     else:
         odo = make_odometry(K, (h, w), config)
         method = {"odometry": getattr(odo, "describe", lambda: {"name": type(odo).__name__})()}
@@ -131,6 +133,10 @@ def run(
                                    gt_T_world_cam=None if gt is None else gt[0],
                                    gt_frames=None if gt is None else gt[1]))
     all_obs += extra
+    for ob in all_obs:  # observers that want the number of selected frames (a progress bar)
+        start = getattr(ob, "on_start", None)
+        if start is not None:
+            start(len(seq))
     interrupted = False
     error = None
     try:

@@ -103,10 +103,8 @@ class RunWriter:
             self.degraded.append({"frame": rec.frame_index, "branch": rec.branch, "reason": rec.reason})
         if "inliers" in rec.stats:
             self.inliers.append(int(rec.stats["inliers"]))
-        total = 0.0
         for k, v in rec.stats.get("ms", {}).items():
             self.stage_ms.setdefault(k, []).append(v)
-            total += v
         if "frame_ms" in rec.stats:
             self.frame_ms.append(rec.stats["frame_ms"])
         self.n_frames += 1

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vo.eval.align import umeyama
+from vo.eval.align import estimate_alignment
 
 
 def _check_poses(T: np.ndarray, name: str) -> np.ndarray:
@@ -72,8 +72,7 @@ def align_estimate_to_gt(
     base_gt = np.linalg.inv(G[i_gt[0]])
     p_est = (base_est @ T[i_est])[:, :3, 3]
     p_gt = (base_gt @ G[i_gt])[:, :3, 3]
-    (s, R, t), valid = umeyama(p_est, p_gt, with_scale=True)
-    valid = valid and s > 1e-9  # s == 0 when the ground truth does not move
+    (s, R, t), valid = estimate_alignment(p_est, p_gt, "7dof")  # eval's check of degenerate motion
     S = np.eye(4)
     S[:3, :3] = s * R
     S[:3, 3] = t
