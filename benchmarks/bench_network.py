@@ -53,8 +53,8 @@ def _median_ms(values: list[float]) -> float:
 
 
 def export_models(out_dir: Path, size, seed: int) -> dict:
-    from models.checkpoint import checkpoint_from_dict, random_checkpoint
-    from models.export import export_checkpoint, export_module
+    from trianflow_vo.models.checkpoint import checkpoint_from_dict, random_checkpoint
+    from trianflow_vo.models.export import export_checkpoint, export_module
 
     ckpt = checkpoint_from_dict(random_checkpoint(seed, size))
     with warnings.catch_warnings():
@@ -62,7 +62,7 @@ def export_models(out_dir: Path, size, seed: int) -> dict:
         export_checkpoint(ckpt, out_dir, size, seed)
         import torch
 
-        from models.export import fb_distance_torch, occlusion_torch
+        from trianflow_vo.models.export import fb_distance_torch, occlusion_torch
 
         class Masks(torch.nn.Module):
             def forward(self, fw, bw):
@@ -76,10 +76,10 @@ def export_models(out_dir: Path, size, seed: int) -> dict:
 
 
 def bench_ours(model_dir: Path, frames, threads: int) -> dict:
-    from models.export import ort_session
-    from vo.depth.onnx_depth import OnnxDepth
-    from vo.flow.masks import flow_scores
-    from vo.flow.onnx_flow import OnnxFlow
+    from trianflow_vo.models.export import ort_session
+    from trianflow_vo.depth.onnx_depth import OnnxDepth
+    from trianflow_vo.flow.masks import flow_scores
+    from trianflow_vo.flow.onnx_flow import OnnxFlow
 
     flow = OnnxFlow(model_dir / "flow.onnx", threads=threads)
     depth = OnnxDepth(model_dir / "depth.onnx", threads=threads)
@@ -117,7 +117,7 @@ def bench_ours(model_dir: Path, frames, threads: int) -> dict:
 def bench_torch_eager(ckpt, frames, threads: int) -> dict:
     import torch
 
-    from models.export import DepthGraph, FlowGraph, fb_distance_torch, occlusion_torch
+    from trianflow_vo.models.export import DepthGraph, FlowGraph, fb_distance_torch, occlusion_torch
 
     torch.set_num_threads(threads)
     flow_net = FlowGraph(ckpt.flow.net, ckpt.flow.normalisation).eval()
@@ -161,7 +161,7 @@ def bench_ort_settings(model_dir: Path, frames, threads: int, repeats: int) -> l
     """Flow graph alone under onnxruntime optimisation levels, spinning and thread counts."""
     import onnxruntime as ort
 
-    from vo.flow.onnx_flow import OnnxFlow
+    from trianflow_vo.flow.onnx_flow import OnnxFlow
 
     src = OnnxFlow(model_dir / "flow.onnx", threads=threads)
     feed = {"image1": src.prepare(frames[0]).tensor, "image2": src.prepare(frames[1]).tensor}
@@ -307,7 +307,7 @@ def main(argv=None) -> int:
     frames = _load_frames(args.seq, args.pairs + 1, size)
     cv2.setNumThreads(args.threads)
 
-    from models.checkpoint import checkpoint_from_dict, random_checkpoint
+    from trianflow_vo.models.checkpoint import checkpoint_from_dict, random_checkpoint
 
     with tempfile.TemporaryDirectory() as tmp:
         model_dir = args.models or Path(tmp)

@@ -70,22 +70,22 @@ def _worker(job: dict) -> dict:
     import numpy as np
 
     cv2.setNumThreads(THREADS)
-    from vo.eval.evaluate import evaluate
-    from vo.io.trajectory import read_trajectory
-    from vo.pipeline import load_ground_truth
+    from trianflow_vo.eval.evaluate import evaluate
+    from trianflow_vo.io.trajectory import read_trajectory
+    from trianflow_vo.pipeline import load_ground_truth
 
     seq = Path(job["seq"])
     t0 = time.perf_counter()
     out = Path(job["out_dir"])
     if job["method"] == "dense":
-        from vo.config import RunConfig
-        from vo.pipeline import run
+        from trianflow_vo.config import RunConfig
+        from trianflow_vo.pipeline import run
 
         cfg = RunConfig(seq=seq, out_dir=out, stride=job["stride"], end=job["end"], seed=job["seed"],
                         threads=THREADS, plot=False, quiet=True, **job.get("overrides", {}))
         summary = run(cfg)
     else:
-        from vo.baseline.sparse import SparseParams, run_sparse
+        from trianflow_vo.baseline.sparse import SparseParams, run_sparse
 
         base = SparseParams()
         params = dataclasses.replace(base, geometry=dataclasses.replace(base.geometry, seed=job["seed"]))

@@ -6,7 +6,7 @@ import contextlib
 
 import click
 
-from vo.errors import VOError
+from trianflow_vo.errors import VOError
 
 
 @contextlib.contextmanager

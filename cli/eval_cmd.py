@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from cli.errors import user_errors
+from trianflow_vo.cli.errors import user_errors
 
 _DEFAULT_LENGTHS = "100,200,300,400,500,600,700,800"
 
@@ -75,8 +75,8 @@ def eval_cmd(gt_path, pred_path, align, lengths, json_path, plot_path, max_time_
     """
     import json
 
-    from vo.eval import evaluate_files, find_latest_run
-    from vo.eval.report import format_report
+    from trianflow_vo.eval import evaluate_files, find_latest_run
+    from trianflow_vo.eval.report import format_report
 
     for out in (json_path, plot_path):
         if out is not None and not out.resolve().parent.is_dir():
@@ -96,7 +96,7 @@ def eval_cmd(gt_path, pred_path, align, lengths, json_path, plot_path, max_time_
                 raise click.ClickException(f"{json_path}: cannot write: {exc.strerror or exc}") from None
             click.echo(f"wrote {json_path}")
         if plot_path is not None:
-            from vo.eval.plot import plot_evaluation
+            from trianflow_vo.eval.plot import plot_evaluation
 
             try:
                 plot_evaluation(result, plot_path)

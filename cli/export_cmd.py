@@ -6,8 +6,8 @@ from pathlib import Path
 
 import click
 
-from cli.errors import user_errors
-from cli.options import parse_size
+from trianflow_vo.cli.errors import user_errors
+from trianflow_vo.cli.options import parse_size
 
 
 @click.command("export")
@@ -28,13 +28,13 @@ def export(checkpoint, random_init, seed, size, out_dir):
         try:
             import torch  # noqa: F401
         except ImportError:
-            from vo.errors import DependencyError
+            from trianflow_vo.errors import DependencyError
 
             raise DependencyError("export needs torch: pip install 'trianflow-vo[torch]'") from None
         import warnings
 
-        from models.checkpoint import DEFAULT_SIZE, checkpoint_from_dict, load_checkpoint, random_checkpoint
-        from models.export import export_checkpoint
+        from trianflow_vo.models.checkpoint import DEFAULT_SIZE, checkpoint_from_dict, load_checkpoint, random_checkpoint
+        from trianflow_vo.models.export import export_checkpoint
 
         if random_init:
             ckpt = checkpoint_from_dict(random_checkpoint(seed, size or DEFAULT_SIZE), "<random-init>")

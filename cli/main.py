@@ -10,13 +10,13 @@ import importlib
 
 import click
 
-from vo import __version__
+from trianflow_vo import __version__
 
 _COMMANDS = {
-    "run": ("cli.run_cmd", "run", "Estimate a camera trajectory from a sequence (KITTI, TUM, images, video)."),
-    "eval": ("cli.eval_cmd", "eval_cmd", "Evaluate a trajectory against ground truth (KITTI t_err/r_err, ATE, RPE)."),
-    "export": ("cli.export_cmd", "export", "Export flow and depth networks to ONNX."),
-    "view": ("cli.view_cmd", "view", "Open a Rerun recording (.rrd) in the viewer."),
+    "run": ("trianflow_vo.cli.run_cmd", "run", "Estimate a camera trajectory from a sequence (KITTI, TUM, images, video)."),
+    "eval": ("trianflow_vo.cli.eval_cmd", "eval_cmd", "Evaluate a trajectory against ground truth (KITTI t_err/r_err, ATE, RPE)."),
+    "export": ("trianflow_vo.cli.export_cmd", "export", "Export flow and depth networks to ONNX."),
+    "view": ("trianflow_vo.cli.view_cmd", "view", "Open a Rerun recording (.rrd) in the viewer."),
 }
 
 

@@ -9,15 +9,15 @@ from pathlib import Path
 
 import click
 
-from cli.errors import user_errors
-from cli.options import parse_size
+from trianflow_vo.cli.errors import user_errors
+from trianflow_vo.cli.options import parse_size
 
 
 def _parse_intrinsics(ctx, param, value):
     if value is None:
         return None
-    from vo.errors import InputError
-    from vo.io.calib import parse_intrinsics
+    from trianflow_vo.errors import InputError
+    from trianflow_vo.io.calib import parse_intrinsics
 
     try:
         return parse_intrinsics(value)
@@ -107,8 +107,8 @@ def run(seq, out_dir, stride, start, end, size, intrinsics, calib, flow_model, d
     """
     import cv2
 
-    from vo.config import RunConfig
-    from vo.pipeline import run as run_pipeline
+    from trianflow_vo.config import RunConfig
+    from trianflow_vo.pipeline import run as run_pipeline
 
     if stride < 1:
         raise click.BadParameter(f"must be >= 1, got {stride}", param_hint="--stride")

@@ -9,14 +9,14 @@ from pathlib import Path
 
 import click
 
-from cli.errors import user_errors
+from trianflow_vo.cli.errors import user_errors
 
 RRD_MAGIC = b"RRF"  # every .rrd starts with "RRF" and a format digit ("RRF2" in rerun-sdk 0.2x-0.4x)
 
 
 def _check_recording(path: Path) -> None:
     """Raise ``InputError`` unless ``path`` is a readable file that starts like a recording."""
-    from vo.errors import InputError
+    from trianflow_vo.errors import InputError
 
     if not path.exists():
         raise InputError("no such file", path)
@@ -34,8 +34,8 @@ def _check_recording(path: Path) -> None:
 
 def _viewer_command() -> list[str]:
     """Command that runs the Rerun CLI of this Python environment (``python -m rerun``)."""
-    from vo.errors import DependencyError
-    from vo.viz.rerun_logger import RERUN_INSTALL_HINT
+    from trianflow_vo.errors import DependencyError
+    from trianflow_vo.viz.rerun_logger import RERUN_INSTALL_HINT
 
     if importlib.util.find_spec("rerun") is None:
         raise DependencyError(f"rerun-sdk is needed to view recordings: {RERUN_INSTALL_HINT}")
@@ -62,7 +62,7 @@ def view(recording: Path, web: bool, web_port: int):
 
     Runs the viewer shipped with rerun-sdk and waits until it is closed.
     """
-    from vo.viz.rerun_logger import no_display_reason
+    from trianflow_vo.viz.rerun_logger import no_display_reason
 
     with user_errors():
         _check_recording(recording)

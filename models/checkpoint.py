@@ -34,9 +34,9 @@ from pathlib import Path
 
 import torch
 
-from models.depth_net import DepthConfig, DepthNet
-from models.pwc import PWCConfig, PWCNet
-from vo.errors import ModelError
+from trianflow_vo.models.depth_net import DepthConfig, DepthNet
+from trianflow_vo.models.pwc import PWCConfig, PWCNet
+from trianflow_vo.errors import ModelError
 
 FORMAT_TAG = "trianflow-vo-checkpoint"
 FORMAT_VERSION = 1

@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from models.resnet_encoder import ENCODER_CHANNELS, ResNet18Encoder
+from trianflow_vo.models.resnet_encoder import ENCODER_CHANNELS, ResNet18Encoder
 
 
 @dataclass(frozen=True)

@@ -36,10 +36,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-import vo
-from models.checkpoint import Checkpoint
-from models.depth_net import DepthNet, disp_to_depth
-from models.pwc import PWCNet
+import trianflow_vo
+from trianflow_vo.models.checkpoint import Checkpoint
+from trianflow_vo.models.depth_net import DepthNet, disp_to_depth
+from trianflow_vo.models.pwc import PWCNet
 
 OPSET = 18
 EXPORTER = "torchscript"  # or "dynamo"
@@ -146,7 +146,7 @@ def _metadata(kind: str, size, channel_order: str, norm: dict, inputs, outputs, 
         "input_names": json.dumps(list(inputs)),
         "output_names": json.dumps(list(outputs)),
         "config": json.dumps(config),
-        "version": vo.__version__,
+        "version": trianflow_vo.__version__,
     }
     meta.update(extra or {})
     return {"trianflow." + k: v for k, v in meta.items()}

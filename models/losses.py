@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from models.pwc import warp
+from trianflow_vo.models.pwc import warp
 
 
 def inside_mask(flow: torch.Tensor) -> torch.Tensor:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from vo.geometry.se3 import rodrigues
+from trianflow_vo.geometry.se3 import rodrigues
 
 K_TEST = np.array([[480.0, 0.0, 416.0], [0.0, 480.0, 128.0], [0.0, 0.0, 1.0]])
 SIZE = (256, 832)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vo.errors import InputError
-from vo.io.calib import (
+from trianflow_vo.errors import InputError
+from trianflow_vo.io.calib import (
     TUM_INTRINSICS,
     intrinsics_matrix,
     kitti_camera_for_folder,

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from cli.main import main
+from trianflow_vo.cli.main import main
 
 SMALL_HW = (128, 384)  # non-KITTI working size: used as is (multiples of 64, long side < 832)
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from cli.main import main
-from vo.io.trajectory import format_kitti_line, format_tum_line
+from trianflow_vo.cli.main import main
+from trianflow_vo.io.trajectory import format_kitti_line, format_tum_line
 
 
 def straight(frames, step=1.0):

@@ -11,8 +11,8 @@ import pytest
 from click.testing import CliRunner
 from scipy.spatial.transform import Rotation
 
-from cli.main import main
-from vo.io.trajectory import format_kitti_line
+from trianflow_vo.cli.main import main
+from trianflow_vo.io.trajectory import format_kitti_line
 
 JSON_KEYS = {"t_err", "r_err", "ate_rmse", "rpe_trans", "rpe_rot", "num_frames", "num_segments", "align", "per_length"}
 

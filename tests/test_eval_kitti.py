@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from cli.main import main
-from vo.eval import evaluate_files
-from vo.io.trajectory import format_kitti_line, format_tum_line, read_trajectory
+from trianflow_vo.cli.main import main
+from trianflow_vo.eval import evaluate_files
+from trianflow_vo.io.trajectory import format_kitti_line, format_tum_line, read_trajectory
 
 # KITTI segment metric of kitti-odometry-eval/pred/dfvo_example_1 (see ../shared/README.md)
 PUBLISHED = {"09": (2.527535077, 0.287707222), "10": (2.221192217, 0.369334674)}

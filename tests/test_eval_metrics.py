@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vo.errors import InputError
-from vo.eval import align_trajectory, evaluate, umeyama
-from vo.eval.align import apply_alignment, estimate_alignment
-from vo.eval.ate_rpe import ate_errors, rpe_errors
-from vo.eval.evaluate import evaluate_associated, suggest_lengths
-from vo.eval.segments import path_distances, rotation_angle, segment_errors
+from trianflow_vo.errors import InputError
+from trianflow_vo.eval import align_trajectory, evaluate, umeyama
+from trianflow_vo.eval.align import apply_alignment, estimate_alignment
+from trianflow_vo.eval.ate_rpe import ate_errors, rpe_errors
+from trianflow_vo.eval.evaluate import evaluate_associated, suggest_lengths
+from trianflow_vo.eval.segments import path_distances, rotation_angle, segment_errors
 
 
 def rot(axis, angle):

@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from vo.errors import InputError
-from vo.eval import align_trajectory, evaluate, evaluate_associated, evaluate_files
-from vo.io.trajectory import format_kitti_line, format_tum_line
+from trianflow_vo.errors import InputError
+from trianflow_vo.eval import align_trajectory, evaluate, evaluate_associated, evaluate_files
+from trianflow_vo.io.trajectory import format_kitti_line, format_tum_line
 
 DEG100 = 180.0 / math.pi * 100.0  # rad/m -> deg/100 m
 # Rotation angles come from acos((trace - 1) / 2), as in the KITTI devkit: ~1.5e-8 rad of
@@ -154,7 +154,7 @@ def test_umeyama_never_returns_a_reflection_and_matches_evo():
     (S = diag(1, 1, -1)), which also enters the scale; evo's Umeyama is the reference."""
     from evo.core.geometry import umeyama_alignment
 
-    from vo.eval.align import umeyama
+    from trianflow_vo.eval.align import umeyama
 
     rng = np.random.default_rng(5)
     src = rng.normal(0, 1, (40, 3)) * [5.0, 2.0, 0.5]

@@ -12,18 +12,18 @@ pytest.importorskip("onnxruntime")
 
 from click.testing import CliRunner  # noqa: E402
 
-import vo  # noqa: E402
-from cli.main import main  # noqa: E402
-from models.checkpoint import (  # noqa: E402
+import trianflow_vo  # noqa: E402
+from trianflow_vo.cli.main import main  # noqa: E402
+from trianflow_vo.models.checkpoint import (  # noqa: E402
     load_checkpoint,
     make_checkpoint,
     random_checkpoint,
     save_checkpoint,
 )
-from models.depth_net import DepthNet  # noqa: E402
-from models.export import DepthGraph, FlowGraph, parity, random_images  # noqa: E402
-from models.pwc import PWCNet  # noqa: E402
-from vo.errors import ModelError  # noqa: E402
+from trianflow_vo.models.depth_net import DepthNet  # noqa: E402
+from trianflow_vo.models.export import DepthGraph, FlowGraph, parity, random_images  # noqa: E402
+from trianflow_vo.models.pwc import PWCNet  # noqa: E402
+from trianflow_vo.errors import ModelError  # noqa: E402
 
 SIZE = (128, 384)
 
@@ -90,7 +90,7 @@ def test_metadata_and_fixed_shapes(exported):
         assert meta["trianflow.kind"] == kind
         assert meta["trianflow.input_size"] == "128x384"
         assert meta["trianflow.channel_order"] == "RGB"
-        assert meta["trianflow.version"] == vo.__version__
+        assert meta["trianflow.version"] == trianflow_vo.__version__
         assert json.loads(meta["trianflow.output_names"]) == outputs
         norm = json.loads(meta["trianflow.normalisation"])
         assert norm["applied"] == "in_graph" and len(norm["mean"]) == 3

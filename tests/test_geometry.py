@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from synthetic import K_TEST, angle_between, project, two_view_scene
-from vo.geometry.epipolar import epipolar_distance, inlier_score, sampson_distance
-from vo.geometry.essential import choose_pose_cheirality, decompose_essential
-from vo.geometry.fundamental import eight_point, essential_from_fundamental, fundamental_from_pose
-from vo.geometry.relative_pose import estimate_relative_pose, refine_pose_sampson
-from vo.geometry.se3 import invert_T, make_T, rodrigues, rotation_angle, rotation_log, skew
-from vo.geometry.triangulation import triangulate_midpoint
+from trianflow_vo.geometry.epipolar import epipolar_distance, inlier_score, sampson_distance
+from trianflow_vo.geometry.essential import choose_pose_cheirality, decompose_essential
+from trianflow_vo.geometry.fundamental import eight_point, essential_from_fundamental, fundamental_from_pose
+from trianflow_vo.geometry.relative_pose import estimate_relative_pose, refine_pose_sampson
+from trianflow_vo.geometry.se3 import invert_T, make_T, rodrigues, rotation_angle, rotation_log, skew
+from trianflow_vo.geometry.triangulation import triangulate_midpoint
 
 
 def test_rodrigues_log_roundtrip():

@@ -6,8 +6,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from models.depth_net import DepthConfig, DepthNet, disp_to_depth  # noqa: E402
-from models.resnet_encoder import ResNet18Encoder  # noqa: E402
+from trianflow_vo.models.depth_net import DepthConfig, DepthNet, disp_to_depth  # noqa: E402
+from trianflow_vo.models.resnet_encoder import ResNet18Encoder  # noqa: E402
 
 
 def test_disp_to_depth_end_points_and_monotonic():

@@ -8,8 +8,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from models.losses import photometric_error, smoothness  # noqa: E402
-from models.pwc import PWCConfig, PWCNet, cost_volume, upsample_flow, warp  # noqa: E402
+from trianflow_vo.models.losses import photometric_error, smoothness  # noqa: E402
+from trianflow_vo.models.pwc import PWCConfig, PWCNet, cost_volume, upsample_flow, warp  # noqa: E402
 
 SMALL = PWCConfig(pyramid_channels=(8, 16, 24, 32, 48, 64), estimator_channels=(32, 32, 24, 16, 8),
                   context_channels=(32, 32, 32, 24, 16, 8))

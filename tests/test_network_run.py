@@ -13,11 +13,11 @@ pytest.importorskip("onnxruntime")
 
 from click.testing import CliRunner  # noqa: E402
 
-from cli.main import main  # noqa: E402
-from models.checkpoint import FLOW_NORM  # noqa: E402
-from models.export import export_flow  # noqa: E402
-from models.pwc import PWCConfig, PWCNet  # noqa: E402
-from vo.flow.onnx_flow import OnnxFlow  # noqa: E402
+from trianflow_vo.cli.main import main  # noqa: E402
+from trianflow_vo.models.checkpoint import FLOW_NORM  # noqa: E402
+from trianflow_vo.models.export import export_flow  # noqa: E402
+from trianflow_vo.models.pwc import PWCConfig, PWCNet  # noqa: E402
+from trianflow_vo.flow.onnx_flow import OnnxFlow  # noqa: E402
 
 END = 6  # frames 0..5: the first frame and 5 pairs
 

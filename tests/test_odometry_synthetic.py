@@ -1,12 +1,12 @@
-"""``vo.odometry.Odometry`` on a synthetic scene with exact dense flow and known motion.
+"""``trianflow_vo.odometry.Odometry`` on a synthetic scene with exact dense flow and known motion.
 
 The scene is the inside of a box (a street: ground, two walls, a ceiling, an end
 wall). Seen from inside, a convex box hides nothing, so the depth of every pixel
 of every view is one ray-plane intersection and the exact forward and backward
 flows between any two views follow by back-projecting, moving and projecting.
-:class:`BoxFlow` serves them through the :class:`vo.flow.base.FlowSource`
+:class:`BoxFlow` serves them through the :class:`trianflow_vo.flow.base.FlowSource`
 interface; depth comes from the weight-free
-:class:`vo.depth.triangulated.TriangulatedDepth`. No image content is used.
+:class:`trianflow_vo.depth.triangulated.TriangulatedDepth`. No image content is used.
 """
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vo.depth.triangulated import TriangulatedDepth
-from vo.geometry.se3 import invert_T, make_T, rodrigues, rotation_angle
-from vo.odometry import Odometry, OdometryParams
+from trianflow_vo.depth.triangulated import TriangulatedDepth
+from trianflow_vo.geometry.se3 import invert_T, make_T, rodrigues, rotation_angle
+from trianflow_vo.odometry import Odometry, OdometryParams
 
 H, W = 160, 512
 K = np.array([[300.0, 0.0, 255.5], [0.0, 300.0, 79.5], [0.0, 0.0, 1.0]])

@@ -12,12 +12,12 @@ torch = pytest.importorskip("torch")
 onnx = pytest.importorskip("onnx")
 pytest.importorskip("onnxruntime")
 
-from models.depth_net import DepthNet  # noqa: E402
-from models.export import DepthGraph, FlowGraph, export_depth, export_flow  # noqa: E402
-from models.pwc import PWCConfig, PWCNet  # noqa: E402
-from vo.depth.onnx_depth import OnnxDepth  # noqa: E402
-from vo.errors import DependencyError, ModelError  # noqa: E402
-from vo.flow.onnx_flow import OnnxFlow, _flow_to_working  # noqa: E402
+from trianflow_vo.models.depth_net import DepthNet  # noqa: E402
+from trianflow_vo.models.export import DepthGraph, FlowGraph, export_depth, export_flow  # noqa: E402
+from trianflow_vo.models.pwc import PWCConfig, PWCNet  # noqa: E402
+from trianflow_vo.depth.onnx_depth import OnnxDepth  # noqa: E402
+from trianflow_vo.errors import DependencyError, ModelError  # noqa: E402
+from trianflow_vo.flow.onnx_flow import OnnxFlow, _flow_to_working  # noqa: E402
 
 SIZE = (64, 192)
 # narrow widths and search range 2 keep the export quick; the structure is the default one
@@ -155,7 +155,7 @@ def test_missing_onnxruntime_is_a_dependency_error(models, monkeypatch):
 
 
 def test_inference_modules_do_not_import_torch():
-    code = ("import sys, vo.flow.onnx_flow, vo.depth.onnx_depth; "
+    code = ("import sys, trianflow_vo.flow.onnx_flow, trianflow_vo.depth.onnx_depth; "
             "assert 'torch' not in sys.modules, 'torch imported'")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr

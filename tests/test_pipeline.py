@@ -1,6 +1,6 @@
 """End to end: ``trianflow-vo run`` on real frames, the run folder it writes, and its accuracy.
 
-Accuracy bounds are ATE RMSE after a Sim(3) alignment (``vo.eval.evaluate``, 7-DoF
+Accuracy bounds are ATE RMSE after a Sim(3) alignment (``trianflow_vo.eval.evaluate``, 7-DoF
 Umeyama on positions) against the sequence's ground truth. Each bound sits between
 what the pipeline measures now and what simple failures measure on the same ground
 truth (numbers in the comments; "scale decay" = every step 7% shorter than the last,
@@ -17,13 +17,13 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from cli.main import main
+from trianflow_vo.cli.main import main
 from conftest import SAMPLE
-from vo.config import RunConfig
-from vo.eval.evaluate import evaluate
-from vo.geometry.se3 import rotation_angle
-from vo.io.trajectory import quaternion_to_rotation, read_trajectory
-from vo.observer import FrameRecord
+from trianflow_vo.config import RunConfig
+from trianflow_vo.eval.evaluate import evaluate
+from trianflow_vo.geometry.se3 import rotation_angle
+from trianflow_vo.io.trajectory import quaternion_to_rotation, read_trajectory
+from trianflow_vo.observer import FrameRecord
 
 
 def invoke(*args):
@@ -193,7 +193,7 @@ def check_partial_run(out: Path, n: int, status: str) -> dict:
 
 
 def test_interrupt_keeps_valid_trajectory(sample_seq, tmp_path):
-    from vo.pipeline import run
+    from trianflow_vo.pipeline import run
 
     out = tmp_path / "out"
     bomb = RaiseAt(5, KeyboardInterrupt())
@@ -205,7 +205,7 @@ def test_interrupt_keeps_valid_trajectory(sample_seq, tmp_path):
 
 
 def test_crash_keeps_valid_trajectory(sample_seq, tmp_path):
-    from vo.pipeline import run
+    from trianflow_vo.pipeline import run
 
     out = tmp_path / "out"
     with pytest.raises(RuntimeError):
@@ -215,14 +215,14 @@ def test_crash_keeps_valid_trajectory(sample_seq, tmp_path):
 
 
 def test_cli_interrupt_exit_130(sample_seq, tmp_path, monkeypatch):
-    import vo.pipeline
+    import trianflow_vo.pipeline
 
-    real_run = vo.pipeline.run
+    real_run = trianflow_vo.pipeline.run
 
     def run_with_ctrl_c(config, observers=(), on_warning=None):
         return real_run(config, observers=[*observers, RaiseAt(3, KeyboardInterrupt())], on_warning=on_warning)
 
-    monkeypatch.setattr(vo.pipeline, "run", run_with_ctrl_c)
+    monkeypatch.setattr(trianflow_vo.pipeline, "run", run_with_ctrl_c)
     out = tmp_path / "out"
     r = invoke("run", sample_seq, "--stride", "3", "--out", out, "--no-plot")
     assert r.exit_code == 130, r.output

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from vo.viz.plot import align_estimate_to_gt, common_indices, plot_trajectory
+from trianflow_vo.viz.plot import align_estimate_to_gt, common_indices, plot_trajectory
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -120,7 +120,7 @@ def test_plot_input_checks(tmp_path):
 def test_plot_is_headless_and_leaves_no_pyplot_state(tmp_path):
     code = (
         "import sys, numpy as np\n"
-        "from vo.viz.plot import plot_trajectory\n"
+        "from trianflow_vo.viz.plot import plot_trajectory\n"
         "T = np.stack([np.eye(4)] * 3); T[:, 2, 3] = [0, 1, 2]\n"
         f"plot_trajectory(T, {str(tmp_path / 'h.png')!r})\n"
         "assert 'matplotlib.pyplot' not in sys.modules\n"

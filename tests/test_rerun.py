@@ -12,10 +12,10 @@ import cv2
 import numpy as np
 import pytest
 
-from vo.errors import DependencyError, InputError, VOError
-from vo.observer import FrameRecord
-from vo.viz.flow_color import flow_to_rgb
-from vo.viz.rerun_logger import BRANCH_CODES, RerunObserver, quantize_depth
+from trianflow_vo.errors import DependencyError, InputError, VOError
+from trianflow_vo.observer import FrameRecord
+from trianflow_vo.viz.flow_color import flow_to_rgb
+from trianflow_vo.viz.rerun_logger import BRANCH_CODES, RerunObserver, quantize_depth
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -366,19 +366,19 @@ def test_recording_size_per_frame_is_bounded(tmp_path, sample_seq):
 
 
 def test_default_path_never_imports_rerun():
-    mods = ["cli.main", "vo.observer", "vo.viz.rerun_logger", "vo.viz.plot", "vo.viz.flow_color"]
+    mods = ["trianflow_vo.cli.main", "trianflow_vo.observer", "trianflow_vo.viz.rerun_logger", "trianflow_vo.viz.plot", "trianflow_vo.viz.flow_color"]
     if (REPO / "vo" / "pipeline.py").exists():
-        mods.append("vo.pipeline")
+        mods.append("trianflow_vo.pipeline")
     code = (
         "import sys, importlib\n"
         f"for m in {mods!r}: importlib.import_module(m)\n"
         "from click.testing import CliRunner\n"
-        "import cli.main\n"
-        "res = CliRunner().invoke(cli.main.main, ['--help'])\n"
+        "import trianflow_vo.cli.main\n"
+        "res = CliRunner().invoke(trianflow_vo.cli.main.main, ['--help'])\n"
         "assert res.exit_code == 0, res.output\n"
         "import os\n"
         "if os.path.exists(os.path.join('cli', 'run_cmd.py')):\n"
-        "    res = CliRunner().invoke(cli.main.main, ['run', '--help'])\n"
+        "    res = CliRunner().invoke(trianflow_vo.cli.main.main, ['run', '--help'])\n"
         "    assert res.exit_code == 0, res.output\n"
         "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('rerun', 'rerun_bindings', 'matplotlib'))\n"
         "assert not bad, bad\n"
@@ -409,8 +409,8 @@ def check_run_recording(rrd: Path, n_frames: int) -> dict:
 
 
 def test_pipeline_writes_a_recording_with_ground_truth(tmp_path, sample_seq):
-    from vo.config import RunConfig
-    from vo.pipeline import run
+    from trianflow_vo.config import RunConfig
+    from trianflow_vo.pipeline import run
 
     n = 6
     cfg = RunConfig(seq=sample_seq, out_dir=tmp_path / "run", end=n, rerun=tmp_path / "out.rrd",
@@ -434,7 +434,7 @@ def test_run_without_rerun_flags_never_imports_rerun(tmp_path, sample_seq):
     if (REPO / "cli" / "run_cmd.py").exists():  # the real command line
         call = (
             "from click.testing import CliRunner\n"
-            "from cli.main import main\n"
+            "from trianflow_vo.cli.main import main\n"
             f"res = CliRunner().invoke(main, ['run', {str(sample_seq)!r}, '--end', '3', '-q', "
             f"'--out', {str(tmp_path / 'run')!r}])\n"
             "assert res.exit_code == 0, res.output\n"
@@ -442,8 +442,8 @@ def test_run_without_rerun_flags_never_imports_rerun(tmp_path, sample_seq):
     else:
         call = (
             "from pathlib import Path\n"
-            "from vo.config import RunConfig\n"
-            "from vo.pipeline import run\n"
+            "from trianflow_vo.config import RunConfig\n"
+            "from trianflow_vo.pipeline import run\n"
             f"run(RunConfig(seq=Path({str(sample_seq)!r}), out_dir=Path({str(tmp_path / 'run')!r}), end=3))\n"
         )
     code = (
@@ -463,7 +463,7 @@ def test_cli_run_with_rerun(tmp_path, sample_seq):
         pytest.skip("cli/run_cmd.py not written yet")
     from click.testing import CliRunner
 
-    from cli.main import main
+    from trianflow_vo.cli.main import main
 
     n = 6
     res = CliRunner().invoke(main, ["run", str(sample_seq), "--end", str(n), "--rerun", str(tmp_path / "out.rrd"),
@@ -478,7 +478,7 @@ def test_cli_run_spawn_without_display_is_one_line(tmp_path, sample_seq, monkeyp
         pytest.skip("cli/run_cmd.py not written yet")
     from click.testing import CliRunner
 
-    from cli.main import main
+    from trianflow_vo.cli.main import main
 
     monkeypatch.setattr(sys, "platform", "linux")
     monkeypatch.delenv("DISPLAY", raising=False)

@@ -12,10 +12,10 @@ import cv2
 import numpy as np
 import pytest
 
-from vo.errors import InputError
-from vo.frames import Frame, FrameSkip
-from vo.io import sequence as seqmod
-from vo.io.sequence import Prefetcher, Sequence, natural_key, open_sequence
+from trianflow_vo.errors import InputError
+from trianflow_vo.frames import Frame, FrameSkip
+from trianflow_vo.io import sequence as seqmod
+from trianflow_vo.io.sequence import Prefetcher, Sequence, natural_key, open_sequence
 
 H, W = 24, 40
 

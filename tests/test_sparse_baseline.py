@@ -7,11 +7,11 @@ import json
 import numpy as np
 import pytest
 
-from vo.baseline.sparse import SparseOdometry, run_sparse
-from vo.io.trajectory import read_trajectory
-from vo.depth.fusion import fuse_log_depth
-from vo.eval.evaluate import evaluate
-from vo.pipeline import load_ground_truth
+from trianflow_vo.baseline.sparse import SparseOdometry, run_sparse
+from trianflow_vo.io.trajectory import read_trajectory
+from trianflow_vo.depth.fusion import fuse_log_depth
+from trianflow_vo.eval.evaluate import evaluate
+from trianflow_vo.pipeline import load_ground_truth
 
 
 def test_fuse_log_depth_weighted_mean_in_log():

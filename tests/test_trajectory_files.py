@@ -1,4 +1,4 @@
-"""Trajectory file readers (vo.io.trajectory, vo.eval.loader): round trips with the
+"""Trajectory file readers (trianflow_vo.io.trajectory, trianflow_vo.eval.loader): round trips with the
 writers, quaternion conventions, and every bad input naming its file and line."""
 
 from __future__ import annotations
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from vo.errors import InputError
-from vo.eval.loader import associate, find_latest_run, load_ground_truth, load_prediction
-from vo.io.trajectory import (
+from trianflow_vo.errors import InputError
+from trianflow_vo.eval.loader import associate, find_latest_run, load_ground_truth, load_prediction
+from trianflow_vo.io.trajectory import (
     format_kitti_line,
     format_tum_line,
     quaternion_to_rotation,

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vo.errors import InputError
-from vo.io.trajectory import (
+from trianflow_vo.errors import InputError
+from trianflow_vo.io.trajectory import (
     format_kitti_line,
     format_tum_line,
     quaternion_to_rotation,

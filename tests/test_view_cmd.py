@@ -8,8 +8,8 @@ import sys
 import pytest
 from click.testing import CliRunner
 
-import cli.view_cmd
-from cli.main import main
+import trianflow_vo.cli.view_cmd
+from trianflow_vo.cli.main import main
 
 
 @pytest.fixture
@@ -37,7 +37,7 @@ def fake_viewer(monkeypatch, tmp_path, exit_code=0):
     """Replace the Rerun CLI with a script recording its arguments and exiting with ``exit_code``."""
     argv_file = tmp_path / "argv.json"
     code = f"import json, sys; json.dump(sys.argv[1:], open({str(argv_file)!r}, 'w')); sys.exit({exit_code})"
-    monkeypatch.setattr(cli.view_cmd, "_viewer_command", lambda: [sys.executable, "-c", code])
+    monkeypatch.setattr(trianflow_vo.cli.view_cmd, "_viewer_command", lambda: [sys.executable, "-c", code])
     return argv_file
 
 
@@ -83,7 +83,7 @@ def test_viewer_failure_is_one_line(rrd, with_display, monkeypatch, tmp_path):
 
 
 def test_viewer_cannot_start(rrd, with_display, monkeypatch):
-    monkeypatch.setattr(cli.view_cmd, "_viewer_command", lambda: ["/nonexistent/rerun-viewer"])
+    monkeypatch.setattr(trianflow_vo.cli.view_cmd, "_viewer_command", lambda: ["/nonexistent/rerun-viewer"])
     assert_one_line_error(invoke(rrd), "cannot start the Rerun viewer")
 
 
@@ -102,15 +102,15 @@ def test_web_needs_no_display(rrd, without_display, monkeypatch, tmp_path):
 
 
 def test_missing_rerun_sdk(rrd, with_display, monkeypatch):
-    real = cli.view_cmd.importlib.util.find_spec
-    monkeypatch.setattr(cli.view_cmd.importlib.util, "find_spec",
+    real = trianflow_vo.cli.view_cmd.importlib.util.find_spec
+    monkeypatch.setattr(trianflow_vo.cli.view_cmd.importlib.util, "find_spec",
                         lambda name, *a: None if name == "rerun" else real(name, *a))
     assert_one_line_error(invoke(rrd), "rerun-sdk", "pip install")
 
 
 def test_viewer_command_is_this_python():
     pytest.importorskip("rerun")
-    assert cli.view_cmd._viewer_command() == [sys.executable, "-m", "rerun"]
+    assert trianflow_vo.cli.view_cmd._viewer_command() == [sys.executable, "-m", "rerun"]
 
 
 def test_web_option_is_supported_by_the_installed_rerun():

@@ -12,19 +12,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vo.depth.base import DepthSource
-from vo.depth.fusion import fuse_log_depth
-from vo.flow.base import FlowSource
-from vo.flow.masks import flow_scores
-from vo.geometry.epipolar import inlier_score
-from vo.geometry.pnp import backproject, solve_pnp
-from vo.geometry.relative_pose import estimate_relative_pose
-from vo.geometry.rotation import fit_rotation
-from vo.geometry.scale import align_scale
-from vo.geometry.se3 import invert_T, make_T
-from vo.geometry.triangulation import triangulate_midpoint
-from vo.observer import FrameRecord
-from vo.timing import StageTimer
+from trianflow_vo.depth.base import DepthSource
+from trianflow_vo.depth.fusion import fuse_log_depth
+from trianflow_vo.flow.base import FlowSource
+from trianflow_vo.flow.masks import flow_scores
+from trianflow_vo.geometry.epipolar import inlier_score
+from trianflow_vo.geometry.pnp import backproject, solve_pnp
+from trianflow_vo.geometry.relative_pose import estimate_relative_pose
+from trianflow_vo.geometry.rotation import fit_rotation
+from trianflow_vo.geometry.scale import align_scale
+from trianflow_vo.geometry.se3 import invert_T, make_T
+from trianflow_vo.geometry.triangulation import triangulate_midpoint
+from trianflow_vo.observer import FrameRecord
+from trianflow_vo.timing import StageTimer
 
 
 @dataclass(frozen=True)

@@ -2,8 +2,8 @@
 
 Library entry point::
 
-    from vo.config import RunConfig
-    from vo.pipeline import run
+    from trianflow_vo.config import RunConfig
+    from trianflow_vo.pipeline import run
     summary = run(RunConfig(seq=Path("SEQ"), out_dir=Path("out")))
 """
 
@@ -16,23 +16,23 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from vo.camera import scale_intrinsics, working_size
-from vo.config import RunConfig
-from vo.errors import InputError
-from vo.frames import FrameSkip
-from vo.io.run_writer import RunWriter
-from vo.io.sequence import Prefetcher, open_sequence
-from vo.observer import FrameRecord, Observer
-from vo.odometry import Odometry, OdometryParams
+from trianflow_vo.camera import scale_intrinsics, working_size
+from trianflow_vo.config import RunConfig
+from trianflow_vo.errors import InputError
+from trianflow_vo.frames import FrameSkip
+from trianflow_vo.io.run_writer import RunWriter
+from trianflow_vo.io.sequence import Prefetcher, open_sequence
+from trianflow_vo.observer import FrameRecord, Observer
+from trianflow_vo.odometry import Odometry, OdometryParams
 
 
 def make_flow_source(config: RunConfig, size_hw: tuple[int, int]):
     """OpenCV DIS (weight-free) or the ONNX flow network of ``config.flow_model``."""
     if config.flow_model is not None:
-        from vo.flow.onnx_flow import OnnxFlow
+        from trianflow_vo.flow.onnx_flow import OnnxFlow
 
         return OnnxFlow(config.flow_model, threads=config.threads)
-    from vo.flow.dis import DisFlow
+    from trianflow_vo.flow.dis import DisFlow
 
     return DisFlow(config.dis_preset)
 
@@ -40,10 +40,10 @@ def make_flow_source(config: RunConfig, size_hw: tuple[int, int]):
 def make_depth_source(config: RunConfig, size_hw: tuple[int, int]):
     """Depth carried by triangulation (weight-free) or the ONNX depth network."""
     if config.depth_model is not None:
-        from vo.depth.onnx_depth import OnnxDepth
+        from trianflow_vo.depth.onnx_depth import OnnxDepth
 
         return OnnxDepth(config.depth_model, threads=config.threads)
-    from vo.depth.triangulated import TriangulatedDepth
+    from trianflow_vo.depth.triangulated import TriangulatedDepth
 
     return TriangulatedDepth(size_hw)
 
@@ -66,7 +66,7 @@ def odometry_params(config: RunConfig) -> OdometryParams:
 
 def load_ground_truth(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """``(poses (N, 4, 4), frames (N,))`` of a ground-truth file (frame i = line i for KITTI)."""
-    from vo.io.trajectory import read_trajectory
+    from trianflow_vo.io.trajectory import read_trajectory
 
     gt = read_trajectory(path)
     frames = gt.frames if gt.frames is not None else np.arange(len(gt.poses))
@@ -127,7 +127,7 @@ def run(
     all_obs: list[Observer] = [writer]
     extra = list(observers)
     if config.rerun is not None or config.rerun_spawn:
-        from vo.viz.rerun_logger import RerunObserver
+        from trianflow_vo.viz.rerun_logger import RerunObserver
 
         extra.append(RerunObserver(path=config.rerun, spawn=config.rerun_spawn,
                                    gt_T_world_cam=None if gt is None else gt[0],
@@ -179,7 +179,7 @@ def run(
         writer.close(interrupted=interrupted, error=error)
         if config.plot and writer.n_frames >= 2:
             try:
-                from vo.viz.plot import plot_trajectory
+                from trianflow_vo.viz.plot import plot_trajectory
 
                 plot_trajectory(np.stack(writer.poses), config.out_dir / "trajectory.png",
                                 gt_T_world_cam=None if gt is None else gt[0],

@@ -26,17 +26,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from vo.depth.fusion import fuse_log_depth  # noqa: F401  (re-exported)
+from trianflow_vo.depth.fusion import fuse_log_depth  # noqa: F401  (re-exported)
 
-from vo.geometry.pnp import backproject, solve_pnp
-from vo.geometry.relative_pose import estimate_relative_pose
-from vo.geometry.rotation import fit_rotation
-from vo.geometry.scale import align_scale
-from vo.geometry.se3 import invert_T, make_T
-from vo.geometry.triangulation import triangulate_midpoint
-from vo.observer import FrameRecord
-from vo.timing import StageTimer
-from vo.odometry import OdometryParams
+from trianflow_vo.geometry.pnp import backproject, solve_pnp
+from trianflow_vo.geometry.relative_pose import estimate_relative_pose
+from trianflow_vo.geometry.rotation import fit_rotation
+from trianflow_vo.geometry.scale import align_scale
+from trianflow_vo.geometry.se3 import invert_T, make_T
+from trianflow_vo.geometry.triangulation import triangulate_midpoint
+from trianflow_vo.observer import FrameRecord
+from trianflow_vo.timing import StageTimer
+from trianflow_vo.odometry import OdometryParams
 
 
 @dataclass(frozen=True)
@@ -275,8 +275,8 @@ def run_sparse(seq_path, out_dir, *, start: int = 0, end: int | None = None, str
     """Run :class:`SparseOdometry` over a sequence through :func:`vo.pipeline.run`, so it
     writes the same run folder (``poses.txt``, ``frames.txt``, ``run.json``, ...) to
     ``out_dir``. Returns the ``run.json`` summary."""
-    from vo.config import RunConfig
-    from vo.pipeline import run
+    from trianflow_vo.config import RunConfig
+    from trianflow_vo.pipeline import run
 
     config = RunConfig(seq=Path(seq_path), out_dir=Path(out_dir), start=start, end=end, stride=stride, size=size,
                        seed=params.geometry.seed, plot=False, quiet=True)

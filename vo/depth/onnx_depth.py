@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from vo.flow.onnx_flow import open_model, to_model_input
+from trianflow_vo.flow.onnx_flow import open_model, to_model_input
 
 
 class OnnxDepth:

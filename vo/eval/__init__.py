@@ -10,11 +10,11 @@ Public entry points:
 Only numpy is imported here; plotting (matplotlib) lives in :mod:`vo.eval.plot`.
 """
 
-from vo.eval.align import ALIGN_MODES, align_trajectory, umeyama
-from vo.eval.associate import match_frames, match_timestamps
-from vo.eval.evaluate import EvalResult, evaluate, evaluate_associated, evaluate_files
-from vo.eval.loader import associate, find_latest_run, load_ground_truth, load_prediction
-from vo.eval.segments import DEFAULT_LENGTHS, DEFAULT_STEP
+from trianflow_vo.eval.align import ALIGN_MODES, align_trajectory, umeyama
+from trianflow_vo.eval.associate import match_frames, match_timestamps
+from trianflow_vo.eval.evaluate import EvalResult, evaluate, evaluate_associated, evaluate_files
+from trianflow_vo.eval.loader import associate, find_latest_run, load_ground_truth, load_prediction
+from trianflow_vo.eval.segments import DEFAULT_LENGTHS, DEFAULT_STEP
 
 __all__ = [
     "ALIGN_MODES",

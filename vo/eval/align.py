@@ -166,7 +166,7 @@ def align_trajectory(pred_poses: np.ndarray, gt_poses: np.ndarray, mode: str = "
         vo.errors.InputError: degenerate alignment (fewer than 3 poses or all
             positions equal) for a mode other than ``"none"``.
     """
-    from vo.errors import InputError
+    from trianflow_vo.errors import InputError
 
     aligned, _, sim, valid = align_rebased(pred_poses, gt_poses, mode)
     if not valid:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from vo.eval.segments import rotation_angle
+from trianflow_vo.eval.segments import rotation_angle
 
 
 def ate_errors(gt_poses: np.ndarray, pred_poses: np.ndarray) -> np.ndarray:

@@ -8,12 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
-from vo.errors import InputError
-from vo.eval.align import ALIGN_MODES, align_rebased, degenerate_message
-from vo.eval.associate import DEFAULT_MAX_TIME_DIFF, match_frames
-from vo.eval.ate_rpe import ate_errors, rmse, rpe_errors
-from vo.eval.loader import MIN_COMMON_FRAMES, Association, associate, load_ground_truth, load_prediction
-from vo.eval.segments import (
+from trianflow_vo.errors import InputError
+from trianflow_vo.eval.align import ALIGN_MODES, align_rebased, degenerate_message
+from trianflow_vo.eval.associate import DEFAULT_MAX_TIME_DIFF, match_frames
+from trianflow_vo.eval.ate_rpe import ate_errors, rmse, rpe_errors
+from trianflow_vo.eval.loader import MIN_COMMON_FRAMES, Association, associate, load_ground_truth, load_prediction
+from trianflow_vo.eval.segments import (
     DEFAULT_LENGTHS,
     DEFAULT_STEP,
     SegmentErrors,

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from vo.errors import InputError
-from vo.eval.associate import DEFAULT_MAX_TIME_DIFF, match_frames, match_timestamps
-from vo.io.trajectory import TrajectoryFile, read_frame_indices, read_trajectory
+from trianflow_vo.errors import InputError
+from trianflow_vo.eval.associate import DEFAULT_MAX_TIME_DIFF, match_frames, match_timestamps
+from trianflow_vo.io.trajectory import TrajectoryFile, read_frame_indices, read_trajectory
 
 RUN_POSES = "poses.txt"
 RUN_FRAMES = "frames.txt"

@@ -14,7 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from vo.errors import DependencyError, ModelError
+from trianflow_vo.errors import DependencyError, ModelError
 
 META_PREFIX = "trianflow."
 META_FORMAT_VERSION = "1"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from vo.geometry.triangulation import triangulate_midpoint
+from trianflow_vo.geometry.triangulation import triangulate_midpoint
 
 
 def decompose_essential(E: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:

@@ -73,7 +73,7 @@ def essential_from_fundamental(F: np.ndarray, K1: np.ndarray, K2: np.ndarray | N
 
 def fundamental_from_pose(R: np.ndarray, t: np.ndarray, K1: np.ndarray, K2: np.ndarray | None = None) -> np.ndarray:
     """``F = K2^-T [t]_x R K1^-1`` for ``X2 = R X1 + t``; unit Frobenius norm."""
-    from vo.geometry.se3 import skew
+    from trianflow_vo.geometry.se3 import skew
 
     K2 = K1 if K2 is None else K2
     F = np.linalg.inv(K2).T @ skew(t) @ R @ np.linalg.inv(K1)

@@ -17,10 +17,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from vo.geometry.epipolar import sampson_distance
-from vo.geometry.essential import choose_pose_cheirality
-from vo.geometry.fundamental import eight_point, essential_from_fundamental, fundamental_from_pose
-from vo.geometry.se3 import rodrigues, skew
+from trianflow_vo.geometry.epipolar import sampson_distance
+from trianflow_vo.geometry.essential import choose_pose_cheirality
+from trianflow_vo.geometry.fundamental import eight_point, essential_from_fundamental, fundamental_from_pose
+from trianflow_vo.geometry.se3 import rodrigues, skew
 
 
 @dataclass

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from vo.geometry.triangulation import bearings
+from trianflow_vo.geometry.triangulation import bearings
 
 
 def fit_rotation(pts1: np.ndarray, pts2: np.ndarray, K: np.ndarray, iters: int = 3) -> tuple[np.ndarray, np.ndarray]:

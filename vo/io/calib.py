@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vo.errors import InputError
+from trianflow_vo.errors import InputError
 
 # Published intrinsics of the TUM RGB-D colour cameras (fx, fy, cx, cy) at
 # 640x480. Freiburg 1 and 2 images are not undistorted; their small lens

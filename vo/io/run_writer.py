@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from vo import __version__
-from vo.io.trajectory import format_kitti_line, format_tum_line
-from vo.observer import FrameRecord
+from trianflow_vo import __version__
+from trianflow_vo.io.trajectory import format_kitti_line, format_tum_line
+from trianflow_vo.observer import FrameRecord
 
 BRANCHES = ("init", "two-view", "pnp", "rotation", "identity", "failed")
 # frames.tsv: one row per processed frame, which branch it took and why

@@ -35,9 +35,9 @@ from pathlib import Path
 
 import numpy as np
 
-from vo.errors import InputError
-from vo.frames import Frame, FrameSkip
-from vo.io import calib as _calib
+from trianflow_vo.errors import InputError
+from trianflow_vo.frames import Frame, FrameSkip
+from trianflow_vo.io import calib as _calib
 
 IMAGE_EXTENSIONS = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"})
 KINDS = ("kitti", "tum", "images", "video")

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vo.errors import InputError
+from trianflow_vo.errors import InputError
 
 
 def format_kitti_line(T_world_cam: np.ndarray) -> str:

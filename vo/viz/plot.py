@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vo.eval.align import estimate_alignment
+from trianflow_vo.eval.align import estimate_alignment
 
 
 def _check_poses(T: np.ndarray, name: str) -> np.ndarray:

@@ -57,10 +57,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from vo.errors import DependencyError, InputError, VOError
-from vo.observer import FrameRecord
-from vo.viz.flow_color import flow_to_rgb
-from vo.viz.plot import align_estimate_to_gt
+from trianflow_vo.errors import DependencyError, InputError, VOError
+from trianflow_vo.observer import FrameRecord
+from trianflow_vo.viz.flow_color import flow_to_rgb
+from trianflow_vo.viz.plot import align_estimate_to_gt
 
 RERUN_INSTALL_HINT = "pip install 'trianflow-vo[rerun]' (or pip install 'rerun-sdk>=0.28,<0.42')"
 
