@@ -6,7 +6,13 @@ import contextlib
 
 import click
 
-from trianflow_vo.errors import VOError
+from trianflow_vo.errors import ConfigError, VOError
+
+
+class BadConfig(click.ClickException):
+    """A bad configuration key or value: one line, exit status 2 (like a bad option)."""
+
+    exit_code = 2
 
 
 @contextlib.contextmanager
@@ -14,6 +20,8 @@ def user_errors():
     """Re-raise our exceptions (and missing files) as ``click.ClickException``."""
     try:
         yield
+    except ConfigError as exc:
+        raise BadConfig(str(exc)) from None
     except VOError as exc:
         raise click.ClickException(str(exc)) from None
     except FileNotFoundError as exc:

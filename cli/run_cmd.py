@@ -1,4 +1,4 @@
-"""``trianflow-vo run``: parse options, build a RunConfig, call :func:`vo.pipeline.run`."""
+"""``trianflow-vo run``: parse options, build the Config, call :func:`trianflow_vo.pipeline.run`."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import click
 
 from trianflow_vo.cli.errors import user_errors
 from trianflow_vo.cli.options import parse_size
+from trianflow_vo.observer import Observer
 
 
 def _parse_intrinsics(ctx, param, value):
@@ -25,7 +26,7 @@ def _parse_intrinsics(ctx, param, value):
         raise click.BadParameter(exc.message) from None
 
 
-class Progress:
+class Progress(Observer):
     """One status line on stderr: frames done, frames/s, branch counts."""
 
     def __init__(self, enabled: bool):
@@ -60,89 +61,123 @@ class Progress:
             click.echo("", err=True)
 
 
+# shortcut flag -> configuration key (a flag given on the command line wins over --config and --set)
+SHORTCUTS = {
+    "stride": "input.stride", "start": "input.start", "end": "input.end", "size": "input.size",
+    "intrinsics": "input.intrinsics", "calib": "input.calib",
+    "flow_model": "flow.model", "dis_preset": "flow.dis_preset", "depth_model": "depth.model",
+    "n_samples": "sampling.n_samples", "seed": "sampling.seed", "min_parallax_px": "keyframes.min_parallax_px",
+    "threads": "runtime.threads", "gt": "output.gt", "rerun_path": "output.rerun", "rerun_spawn": "output.rerun_spawn",
+}
+
+
+def _shortcut_dict(values: dict) -> dict:
+    """Nested config dict of the shortcut flags that were given (None = not given)."""
+    out: dict = {}
+    for name, key in SHORTCUTS.items():
+        v = values.get(name)
+        if v is None or v is False:
+            continue
+        section, field = key.split(".")
+        out.setdefault(section, {})[field] = list(v) if isinstance(v, tuple) else (str(v) if isinstance(v, Path) else v)
+    return out
+
+
+def build_config(config_file: str | None, overrides: tuple[str, ...], shortcuts: dict, no_plot: bool):
+    """defaults < ``--config`` < ``--set`` < explicit shortcut flags."""
+    from trianflow_vo.config import Config, apply_overrides, load_config, merge_dict
+
+    config = load_config(config_file) if config_file else Config()
+    config = apply_overrides(config, overrides)
+    flags = _shortcut_dict(shortcuts)
+    if no_plot:
+        flags.setdefault("output", {})["plot"] = False
+    return merge_dict(config, flags, "command-line flags") if flags else config
+
+
+def default_out_dir(seq: Path) -> Path:
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    out_dir = Path("runs") / f"{Path(seq).resolve().name or 'seq'}-{stamp}"
+    n, base = 1, out_dir
+    while out_dir.exists():
+        n += 1
+        out_dir = Path(f"{base}-{n}")
+    return out_dir
+
+
 @click.command("run")
 @click.argument("seq", type=click.Path(path_type=Path))
 @click.option("--out", "out_dir", type=click.Path(path_type=Path), default=None,
               help="Output folder (default: a new folder under ./runs/).")
-@click.option("--stride", type=int, default=1, show_default=True, help="Use every N-th frame.")
-@click.option("--start", type=int, default=0, show_default=True, help="First source frame index.")
-@click.option("--end", type=int, default=None, help="Stop before this source frame index.")
+@click.option("--config", "config_file", metavar="FILE|PRESET", default=None,
+              help="Configuration: a YAML file, a run's run.json or config.yaml (reproduces that run), "
+                   "or a shipped preset (default, kitti, indoor). See configs/README.md.")
+@click.option("--set", "overrides", multiple=True, metavar="SECTION.KEY=VALUE",
+              help="Set one configuration key, e.g. --set sampling.n_samples=8000 (repeatable).")
+@click.option("--stride", type=click.IntRange(min=1), default=None, help="Use every N-th frame [input.stride; 1].")
+@click.option("--start", type=click.IntRange(min=0), default=None, help="First source frame index [input.start; 0].")
+@click.option("--end", type=int, default=None, help="Stop before this source frame index [input.end].")
 @click.option("--size", callback=parse_size, default=None, metavar="HxW",
-              help="Working resolution (default 256x832 for KITTI-like frames, else long side <= 832, multiples of 64).")
+              help="Working resolution [input.size] (default 256x832 for KITTI-like frames, else long side <= 832, "
+                   "multiples of 64).")
 @click.option("--intrinsics", callback=_parse_intrinsics, default=None, metavar="FX,FY,CX,CY",
-              help="Camera intrinsics at the source resolution (overrides the sequence's calibration).")
+              help="Camera intrinsics at the source resolution, overriding the sequence's calibration "
+                   "[input.intrinsics].")
 @click.option("--calib", type=click.Path(path_type=Path), default=None,
-              help="Calibration file: KITTI calib.txt, a 3x3 K, or 'fx fy cx cy'.")
+              help="Calibration file: KITTI calib.txt, a 3x3 K, or 'fx fy cx cy' [input.calib].")
 @click.option("--flow-model", type=click.Path(path_type=Path), default=None,
-              help="ONNX flow network (from `trianflow-vo export`); default OpenCV DIS flow.")
+              help="ONNX flow network (from `trianflow-vo export`) [flow.model]; default OpenCV DIS flow.")
 @click.option("--depth-model", type=click.Path(path_type=Path), default=None,
-              help="ONNX depth network; default: depth carried from earlier triangulation.")
-@click.option("--threads", type=click.IntRange(1, 64), default=2, show_default=True,
-              help="CPU threads for OpenCV and onnxruntime.")
-@click.option("--dis-preset", type=click.Choice(["fast", "medium", "fine"]), default="medium", show_default=True,
-              help="OpenCV DIS flow setting (weight-free path).")
-@click.option("--min-parallax", "min_parallax_px", type=click.FloatRange(0.0, 100.0), default=3.0,
-              show_default=True,
-              help="Median parallax (px, after removing rotation) below which PnP/rotation-only is used.")
-@click.option("--samples", "n_samples", type=click.IntRange(100, 100000), default=6000, show_default=True,
-              help="Matches drawn per frame pair.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Random seed (runs are reproducible).")
+              help="ONNX depth network [depth.model]; default: depth carried from earlier triangulation.")
+@click.option("--threads", type=click.IntRange(1, 64), default=None,
+              help="CPU threads for OpenCV and onnxruntime [runtime.threads; 2].")
+@click.option("--dis-preset", type=click.Choice(["fast", "medium", "fine"]), default=None,
+              help="OpenCV DIS flow setting, weight-free path [flow.dis_preset; medium].")
+@click.option("--min-parallax", "min_parallax_px", type=click.FloatRange(0.0, 100.0), default=None,
+              help="Median parallax (px, after removing rotation) below which PnP/rotation-only is used "
+                   "[keyframes.min_parallax_px; 3].")
+@click.option("--samples", "n_samples", type=click.IntRange(100, 100000), default=None,
+              help="Matches drawn per frame pair [sampling.n_samples; 6000].")
+@click.option("--seed", type=click.IntRange(min=0), default=None,
+              help="Random seed; runs are reproducible [sampling.seed; 0].")
 @click.option("--gt", type=click.Path(path_type=Path), default=None,
-              help="Ground-truth poses, drawn beside the estimate in trajectory.png and the Rerun recording.")
+              help="Ground-truth poses, drawn beside the estimate in trajectory.png and the Rerun recording "
+                   "[output.gt].")
 @click.option("--rerun", "rerun_path", type=click.Path(path_type=Path), default=None,
-              help="Write a Rerun recording (.rrd).")
-@click.option("--rerun-spawn", is_flag=True, help="Stream to a live Rerun viewer.")
-@click.option("--no-plot", is_flag=True, help="Do not write trajectory.png.")
-@click.option("-q", "--quiet", is_flag=True, help="No progress bar and no warnings.")
-def run(seq, out_dir, stride, start, end, size, intrinsics, calib, flow_model, depth_model, threads, dis_preset,
-        min_parallax_px, n_samples, seed, gt, rerun_path, rerun_spawn, no_plot, quiet):
+              help="Write a Rerun recording (.rrd) [output.rerun].")
+@click.option("--rerun-spawn", is_flag=True, default=None, help="Stream to a live Rerun viewer [output.rerun_spawn].")
+@click.option("--no-plot", is_flag=True, help="Do not write trajectory.png [output.plot=false].")
+@click.option("-v", "--verbose", count=True, help="Log routine steps too (PnP on small parallax, static camera); "
+                                                 "-vv for debugging.")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar and no warnings (errors only).")
+def run(seq, out_dir, config_file, overrides, no_plot, verbose, quiet, **shortcuts):
     """Estimate the camera trajectory of SEQ.
 
     SEQ is a KITTI odometry sequence folder (image_0/ or image_2/ with calib.txt),
     a TUM RGB-D folder (rgb.txt), a folder of images or a video file.
 
     Writes poses.txt (KITTI, camera-to-world), frames.txt (source frame of each
-    line), trajectory.tum, run.json and trajectory.png to the output folder, frame
-    by frame: an interrupted run keeps what it did.
+    line), trajectory.tum, frames.tsv, run.json, config.yaml and trajectory.png
+    to the output folder, frame by frame: an interrupted run keeps what it did.
+    `--config OUT/config.yaml` (or OUT/run.json) repeats a run exactly.
     """
-    import cv2
-
-    from trianflow_vo.config import RunConfig
+    from trianflow_vo.cli.logs import setup_logging
     from trianflow_vo.pipeline import run as run_pipeline
 
-    if stride < 1:
-        raise click.BadParameter(f"must be >= 1, got {stride}", param_hint="--stride")
-    if intrinsics is not None and calib is not None:
-        raise click.UsageError("give either --intrinsics or --calib, not both")
-    if out_dir is None:
-        stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-        out_dir = Path("runs") / f"{Path(seq).resolve().name or 'seq'}-{stamp}"
-        n = 1
-        base = out_dir
-        while out_dir.exists():
-            n += 1
-            out_dir = Path(f"{base}-{n}")
-    cv2.setNumThreads(threads)
-    config = RunConfig(seq=seq, out_dir=out_dir, start=start, end=end, stride=stride, intrinsics=intrinsics,
-                       calib=calib, size=size, flow_model=flow_model, depth_model=depth_model, threads=threads,
-                       seed=seed, n_samples=n_samples, dis_preset=dis_preset, min_parallax_px=min_parallax_px, rerun=rerun_path,
-                       rerun_spawn=rerun_spawn, gt=gt, plot=not no_plot, quiet=quiet)
-
-    warnings: list[str] = []
-
-    def warn(msg: str) -> None:
-        warnings.append(msg)
-
+    setup_logging(-1 if quiet else verbose)
+    with user_errors():
+        config = build_config(config_file, overrides, shortcuts, no_plot)
+    if config.input.intrinsics is not None and config.input.calib is not None:
+        raise click.UsageError("give either intrinsics or a calibration file, not both "
+                               "(input.intrinsics / input.calib)")
+    out_dir = out_dir or default_out_dir(seq)
     with user_errors():
         progress = Progress(enabled=not quiet)  # closed by the pipeline, like every observer
         try:
-            summary = run_pipeline(config, observers=[progress], on_warning=warn)
+            summary = run_pipeline(seq, out_dir, config, observers=[progress])
         except KeyboardInterrupt:
             click.echo(f"interrupted: the trajectory so far is in {out_dir}", err=True)
             sys.exit(130)
-        finally:
-            if not quiet:
-                _print_warnings(warnings)
     c = summary["branch_counts"]
     if not quiet:
         click.echo(
@@ -151,10 +186,3 @@ def run(seq, out_dir, stride, start, end, size, intrinsics, calib, flow_model, d
             f"rotation-only {c['rotation']}, static {c['identity']}, failed {c['failed']}"
         )
     click.echo(f"wrote {out_dir}")
-
-
-def _print_warnings(warnings: list[str], limit: int = 10) -> None:
-    for msg in warnings[:limit]:
-        click.echo(f"warning: {msg}", err=True)
-    if len(warnings) > limit:
-        click.echo(f"warning: ... and {len(warnings) - limit} more (all listed in run.json)", err=True)

@@ -10,7 +10,8 @@ from synthetic import K_TEST, project, two_view_scene
 from trianflow_vo.camera import scale_intrinsics, working_size
 from trianflow_vo.depth.triangulated import TriangulatedDepth
 from trianflow_vo.flow.masks import fb_distance, flow_scores, occlusion_mask, range_map
-from trianflow_vo.geometry.pnp import backproject, solve_pnp
+from trianflow_vo.camera import unproject as backproject
+from trianflow_vo.geometry.pnp import solve_pnp
 from trianflow_vo.geometry.rotation import fit_rotation
 from trianflow_vo.geometry.scale import align_scale, weighted_median
 from trianflow_vo.geometry.se3 import rodrigues, rotation_angle

@@ -1,6 +1,13 @@
-"""Working resolution and intrinsics scaling."""
+"""The pinhole camera: intrinsics, the working resolution, projection and back-projection.
+
+One type for every part of the tool (odometry, viewers, readers). Pixel
+coordinates are ``(u, v)`` with the centre of the top-left pixel at ``(0, 0)``;
+camera coordinates are x right, y down, z forward (OpenCV).
+"""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -43,3 +50,67 @@ def scale_intrinsics(K: np.ndarray, src_hw: tuple[int, int], dst_hw: tuple[int, 
     out[1, 1] *= sy
     out[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
     return out
+
+
+def project(X_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pixels ``(N, 2)`` of camera-frame points ``(N, 3)`` (z > 0 assumed; see :meth:`PinholeCamera.project`)."""
+    X_cam = np.asarray(X_cam, dtype=np.float64)
+    return (X_cam @ K.T)[:, :2] / X_cam[:, 2:3]
+
+
+def unproject(pts: np.ndarray, depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Camera-frame points ``(N, 3)`` of pixels ``(N, 2)`` with depths (z) ``(N,)``."""
+    pts = np.asarray(pts, dtype=np.float64)
+    x = (pts[:, 0] - K[0, 2]) / K[0, 0]
+    y = (pts[:, 1] - K[1, 2]) / K[1, 1]
+    d = np.asarray(depth, dtype=np.float64)
+    return np.stack([x * d, y * d, d], axis=1)
+
+
+@dataclass(frozen=True)
+class PinholeCamera:
+    """A pinhole camera at one resolution.
+
+    Attributes:
+        K: ``(3, 3)`` intrinsics.
+        size_hw: image size ``(h, w)`` in pixels.
+    """
+
+    K: np.ndarray
+    size_hw: tuple[int, int]
+
+    def __post_init__(self):
+        K = np.array(self.K, dtype=np.float64)
+        if K.shape != (3, 3):
+            raise ValueError(f"K must be (3, 3), got {K.shape}")
+        h, w = (int(v) for v in self.size_hw)
+        if h <= 0 or w <= 0:
+            raise ValueError(f"size_hw must be positive, got {self.size_hw}")
+        K.flags.writeable = False
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "size_hw", (h, w))
+
+    @property
+    def h(self) -> int:
+        return self.size_hw[0]
+
+    @property
+    def w(self) -> int:
+        return self.size_hw[1]
+
+    def resized(self, size_hw: tuple[int, int]) -> PinholeCamera:
+        """The same camera for the image resized (``cv2.resize``) to ``size_hw``."""
+        return PinholeCamera(scale_intrinsics(self.K, self.size_hw, size_hw), size_hw)
+
+    def project(self, X_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(pixels (N, 2), valid (N,))``: valid = in front of the camera and inside the image."""
+        X_cam = np.asarray(X_cam, dtype=np.float64)
+        front = X_cam[:, 2] > 0
+        uv = np.full((X_cam.shape[0], 2), np.nan)
+        uv[front] = project(X_cam[front], self.K)
+        inside = front & (uv[:, 0] > -0.5) & (uv[:, 0] < self.w - 0.5) & (uv[:, 1] > -0.5) & (uv[:, 1] < self.h - 0.5)
+        return uv, inside
+
+    def unproject(self, pts: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """Camera-frame points ``(N, 3)`` of pixels ``(N, 2)`` with depths ``(N,)``."""
+        return unproject(pts, depth, self.K)

@@ -44,3 +44,26 @@ def sampson_distance(F: np.ndarray, pts1: np.ndarray, pts2: np.ndarray) -> np.nd
 def inlier_score(d_epi: np.ndarray, threshold: float = 0.5) -> np.ndarray:
     """The paper's inlier score ``M_r = (D_epi < threshold) / (1 + D_epi)``, same shape as ``d_epi``."""
     return (d_epi < threshold).astype(np.float32) / (1.0 + d_epi.astype(np.float32))
+
+
+def epipolar_distance_map(F: np.ndarray, flow: np.ndarray) -> np.ndarray:
+    """``D_epi`` ``(h, w)`` float32 of every pixel under a dense flow.
+
+    The distance of ``x + flow(x)`` to the epipolar line ``F x`` in the second
+    image, for each pixel ``x`` of the first.
+
+    Args:
+        F: ``(3, 3)`` fundamental matrix with ``x2^T F x1 = 0``.
+        flow: ``(h, w, 2)`` float32 flow from image 1 to image 2, ``flow[y, x] = (dx, dy)``.
+    """
+    if F.shape != (3, 3) or flow.ndim != 3 or flow.shape[2] != 2:
+        raise ValueError(f"F must be (3, 3) and flow (h, w, 2), got {F.shape} and {flow.shape}")
+    h, w = flow.shape[:2]
+    F = F.astype(np.float32)
+    gx = np.arange(w, dtype=np.float32)[None, :]
+    gy = np.arange(h, dtype=np.float32)[:, None]
+    a = F[0, 0] * gx + F[0, 1] * gy + F[0, 2]
+    b = F[1, 0] * gx + F[1, 1] * gy + F[1, 2]
+    c = F[2, 0] * gx + F[2, 1] * gy + F[2, 2]
+    num = np.abs(a * (gx + flow[..., 0]) + b * (gy + flow[..., 1]) + c)
+    return num / (np.sqrt(a * a + b * b) + 1e-12)

@@ -6,15 +6,6 @@ import cv2
 import numpy as np
 
 
-def backproject(pts: np.ndarray, depth: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """3-D points ``(N, 3)`` in camera coordinates of pixels ``(N, 2)`` with depths ``(N,)``."""
-    pts = np.asarray(pts, dtype=np.float64)
-    x = (pts[:, 0] - K[0, 2]) / K[0, 0]
-    y = (pts[:, 1] - K[1, 2]) / K[1, 1]
-    d = np.asarray(depth, dtype=np.float64)
-    return np.stack([x * d, y * d, d], axis=1)
-
-
 def solve_pnp(
     X_ref: np.ndarray, pts_cur: np.ndarray, K: np.ndarray, reproj_px: float = 1.0, min_inliers: int = 20,
     rng_seed: int = 0,

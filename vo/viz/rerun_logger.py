@@ -27,9 +27,11 @@ frame index, and on ``time`` = seconds when the frame has a timestamp):
   raw depth is the largest item (26 KB per row at the default stride).
 - ``reference/flow``: forward flow reference -> current as a JPEG colour image
   (see ``vo.viz.flow_color``).
-- ``stats/<name>``: ``Scalars`` for every finite number in ``FrameRecord.stats``
-  (inliers, scale, mean_flow, parallax ...; nested dicts such as ``ms`` become
+- ``stats/<name>``: ``Scalars`` for every measured number in ``FrameResult.stats``
+  (inliers, scale, mean_flow_px, parallax_px ...; the stage times become
   ``stats/ms/<stage>``), and ``stats/branch`` as a code (see ``BRANCH_CODES``).
+- When a back-end revises poses (``on_poses_revised``), ``world/trajectory`` is
+  re-logged with the revised path.
 - ``log``: ``TextLog`` per frame: branch and reason (WARN for ``failed``).
 
 An entity that had data on the previous frame but has none on this one gets a
@@ -58,7 +60,9 @@ import cv2
 import numpy as np
 
 from trianflow_vo.errors import DependencyError, InputError, VOError
-from trianflow_vo.observer import FrameRecord
+from trianflow_vo.backend import RevisedPoses
+from trianflow_vo.frame import Branch, FrameResult, FrameView
+from trianflow_vo.observer import Observer
 from trianflow_vo.viz.flow_color import flow_to_rgb
 from trianflow_vo.viz.plot import align_estimate_to_gt
 
@@ -152,7 +156,7 @@ def default_blueprint(rr):
             rrb.Vertical(
                 series("inliers", "inliers"),
                 series("scale", "scale"),
-                series("flow / parallax (px)", "mean_flow", "parallax"),
+                series("flow / parallax (px)", "mean_flow_px", "parallax_px"),
                 series("ms", "frame_ms", "ms", "ms/**"),
                 series("branch (0 init, 1 two-view, 2 pnp, 3 rotation, 4 identity, 5 failed)", "branch"),
                 rrb.TextLogView(origin="log", name="log"),
@@ -163,7 +167,7 @@ def default_blueprint(rr):
     )
 
 
-class RerunObserver:
+class RerunObserver(Observer):
     """Observer logging every processed frame to Rerun (see the module docstring).
 
     Args:
@@ -288,12 +292,12 @@ class RerunObserver:
             self._rec.log(entity, self._rr.Clear(recursive=False))
             self._had.discard(entity)
 
-    def _matches(self, record: FrameRecord):
+    def _matches(self, view: FrameView):
         rr = self._rr
-        if record.pts_ref is None or record.pts_cur is None or self.max_matches == 0:
+        if view.pts_ref is None or view.pts_cur is None or self.max_matches == 0:
             return None
-        a = np.asarray(record.pts_ref, dtype=np.float32).reshape(-1, 2)
-        b = np.asarray(record.pts_cur, dtype=np.float32).reshape(-1, 2)
+        a = np.asarray(view.pts_ref, dtype=np.float32).reshape(-1, 2)
+        b = np.asarray(view.pts_cur, dtype=np.float32).reshape(-1, 2)
         if a.shape != b.shape:
             raise ValueError(f"pts_ref and pts_cur must have the same shape, got {a.shape} and {b.shape}")
         if a.shape[0] == 0:
@@ -302,15 +306,15 @@ class RerunObserver:
         strips = np.stack([a[idx], b[idx]], axis=1)  # (K, 2, 2)
         return rr.LineStrips2D(strips, colors=_MATCH_COLOR, radii=rr.Radius.ui_points(1.0))
 
-    def _points(self, record: FrameRecord):
+    def _points(self, view: FrameView):
         rr = self._rr
-        if record.points_world is None or self.max_points == 0:
+        if view.points_world is None or self.max_points == 0:
             return None
-        p = np.asarray(record.points_world, dtype=np.float32).reshape(-1, 3)
+        p = np.asarray(view.points_world, dtype=np.float32).reshape(-1, 3)
         keep = np.isfinite(p).all(axis=1)
         colors = None
-        if record.point_colors is not None:
-            colors = np.asarray(record.point_colors, dtype=np.uint8).reshape(-1, 3)
+        if view.point_colors is not None:
+            colors = np.asarray(view.point_colors, dtype=np.uint8).reshape(-1, 3)
             if colors.shape[0] != p.shape[0]:
                 raise ValueError(f"point_colors must be ({p.shape[0]}, 3), got {colors.shape}")
             colors = colors[keep]
@@ -320,20 +324,20 @@ class RerunObserver:
         idx = _even_subsample(p.shape[0], self.max_points)
         return rr.Points3D(p[idx], colors=None if colors is None else colors[idx], radii=rr.Radius.ui_points(2.0))
 
-    def _depth(self, record: FrameRecord):
-        if record.depth is None:
+    def _depth(self, view: FrameView):
+        if view.depth is None:
             return None
-        d = np.asarray(record.depth)
+        d = np.asarray(view.depth)
         if d.ndim != 2:
             raise ValueError(f"depth must be (h, w), got {d.shape}")
         s = self.depth_stride
         q, meter = quantize_depth(d[::s, ::s])
         return self._rr.DepthImage(q, meter=meter)
 
-    def _flow(self, record: FrameRecord):
-        if record.flow is None:
+    def _flow(self, view: FrameView):
+        if view.flow is None:
             return None
-        rgb, _ = flow_to_rgb(record.flow)
+        rgb, _ = flow_to_rgb(view.flow)
         bgr = np.ascontiguousarray(rgb[..., ::-1])
         return self._rr.EncodedImage(contents=_jpeg(bgr, self.jpeg_quality), media_type="image/jpeg")
 
@@ -357,7 +361,7 @@ class RerunObserver:
 
     # -- Observer ----------------------------------------------------------------
 
-    def on_frame(self, record: FrameRecord) -> None:
+    def on_frame(self, view: FrameView) -> None:
         if self._closed:
             raise RuntimeError("RerunObserver.on_frame after close()")
         rr, rec = self._rr, self._rec
@@ -377,9 +381,10 @@ class RerunObserver:
         self._frames.append(int(record.frame_index))
         self._positions.append(T[:3, 3].astype(np.float32))
         self._n_frames += 1
+        view = record.view if record.view is not None else FrameView()
 
-        if record.image is not None:
-            img = np.asarray(record.image)
+        if view.image is not None:
+            img = np.asarray(view.image)
             if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
                 raise ValueError(f"image must be (h, w, 3) uint8, got {img.shape} {img.dtype}")
             h, w = img.shape[:2]
@@ -395,30 +400,42 @@ class RerunObserver:
                 "world/camera/image",
                 rr.EncodedImage(contents=_jpeg(img, self.jpeg_quality), media_type="image/jpeg"),
             )
-        self._log_or_clear("world/camera/image/matches", self._matches(record))
-        self._log_or_clear("world/points", self._points(record))
-        if record.depth is None or record.ref_index is None or record.ref_index != self._depth_ref:
-            self._log_or_clear("reference/depth", self._depth(record))
-            self._depth_ref = None if record.depth is None else record.ref_index
-        self._log_or_clear("reference/flow", self._flow(record))
-
-        rec.log(
-            "world/trajectory",
-            rr.LineStrips3D([np.stack(self._positions)], colors=_TRAJ_COLOR, radii=rr.Radius.ui_points(2.0)),
-        )
+        self._log_or_clear("world/camera/image/matches", self._matches(view))
+        self._log_or_clear("world/points", self._points(view))
+        if view.depth is None or record.ref_index is None or record.ref_index != self._depth_ref:
+            self._log_or_clear("reference/depth", self._depth(view))
+            self._depth_ref = None if view.depth is None else record.ref_index
+        self._log_or_clear("reference/flow", self._flow(view))
+        self._log_trajectory()
         if self._gt is not None and self._n_frames % self.gt_every == 0:
             self._log_gt()
 
-        for name, value in _flat_scalars(record.stats, rr.escape_entity_path_part):
+        for name, value in _flat_scalars(record.stats.scalars(), rr.escape_entity_path_part):
             rec.log(f"stats/{name}", rr.Scalars(value))
-        if record.branch in BRANCH_CODES:
-            rec.log("stats/branch", rr.Scalars(float(BRANCH_CODES[record.branch])))
+        rec.log("stats/branch", rr.Scalars(float(BRANCH_CODES[record.branch.value])))
         text = f"frame {record.frame_index}: {record.branch}"
         if record.ref_index is not None:
             text += f" (reference {record.ref_index})"
         if record.reason:
             text += f": {record.reason}"
-        rec.log("log", rr.TextLog(text, level="WARN" if record.branch == "failed" else "INFO"))
+        rec.log("log", rr.TextLog(text, level="WARN" if record.branch is Branch.FAILED else "INFO"))
+
+    def _log_trajectory(self) -> None:
+        rr = self._rr
+        self._rec.log(
+            "world/trajectory",
+            rr.LineStrips3D([np.stack(self._positions)], colors=_TRAJ_COLOR, radii=rr.Radius.ui_points(2.0)),
+        )
+
+    def on_poses_revised(self, revised: RevisedPoses) -> None:
+        """Re-log the trajectory with the revised poses (at the current frame's time)."""
+        for line, T in zip(revised.lines, revised.T_world_cam):
+            self._poses[int(line)] = np.asarray(T, dtype=np.float64)
+            self._positions[int(line)] = np.asarray(T[:3, 3], dtype=np.float32)
+        if self._positions:
+            self._log_trajectory()
+            self._rec.log("log", self._rr.TextLog(f"poses revised ({len(revised.lines)} frames): {revised.reason}",
+                                                  level="INFO"))
 
     def close(self, interrupted: bool = False) -> None:
         """Log the final ground-truth alignment, flush and close the sinks (idempotent)."""

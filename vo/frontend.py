@@ -1,0 +1,348 @@
+"""The front-end: one frame pair, from flow to a scaled relative pose.
+
+``flow -> matches -> relative pose -> triangulation -> scale``, as in TrianFlow.
+Every function here solves the current frame against the reference keyframe and
+returns a :class:`Solution`; none of them changes any state. The order of the
+branches, and the state they update, is :class:`trianflow_vo.odometry.Odometry`'s.
+
+Frames: ``T_world_ref`` is the keyframe's camera-to-world pose, a relative pose
+``(R, t)`` maps keyframe points into the current camera (``X_cur = R X_ref + t``,
+i.e. ``T_cur_ref``), and a solution's ``T_ref_cam`` is the current camera in the
+keyframe (``T_ref_cur = T_cur_ref^-1``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from trianflow_vo.camera import PinholeCamera, project, unproject
+from trianflow_vo.config import Config
+from trianflow_vo.depth.base import ReferenceDepth
+from trianflow_vo.depth.fusion import fuse_log_depth
+from trianflow_vo.flow.base import FlowSource
+from trianflow_vo.flow.masks import flow_scores
+from trianflow_vo.frame import Branch
+from trianflow_vo.geometry.epipolar import epipolar_distance_map, inlier_score
+from trianflow_vo.geometry.pnp import solve_pnp
+from trianflow_vo.geometry.relative_pose import estimate_relative_pose
+from trianflow_vo.geometry.rotation import fit_rotation
+from trianflow_vo.geometry.scale import align_scale
+from trianflow_vo.geometry.se3 import invert_T, make_T
+from trianflow_vo.geometry.triangulation import triangulate_midpoint
+from trianflow_vo.keyframe import Keyframe, TrackIds, Tracks
+from trianflow_vo.timing import StageTimer
+
+
+@dataclass(frozen=True)
+class Matches:
+    """Dense flow between the keyframe and the current frame, and the matches drawn from it.
+
+    Attributes:
+        fw, bw: ``(h, w, 2)`` float32 forward (keyframe -> current) and backward flow.
+        score: ``(h, w)`` float32 ``M_s * M_o`` (forward-backward score times visibility).
+        idx: ``(N,)`` flat pixel indices of the drawn matches.
+        pts_ref, pts_cur: ``(N, 2)`` float64 matching pixels (``pts_cur = pts_ref + flow``).
+        flow_mag: ``(N,)`` float32 flow magnitude of each match (pixels).
+    """
+
+    fw: np.ndarray
+    bw: np.ndarray
+    score: np.ndarray
+    idx: np.ndarray
+    pts_ref: np.ndarray
+    pts_cur: np.ndarray
+    flow_mag: np.ndarray
+
+
+@dataclass(frozen=True)
+class Solution:
+    """The current frame solved against its keyframe.
+
+    Attributes:
+        branch: the :class:`~trianflow_vo.frame.Branch` taken.
+        reason: why (empty for a plain two-view step).
+        T_world_cam: ``(4, 4)`` camera-to-world pose of the current frame.
+        T_ref_cam: ``(4, 4)`` the current frame in the keyframe (``T_ref_cur``).
+        stats: :class:`~trianflow_vo.frame.FrameStats` fields measured here.
+        pts_ref, pts_cur: ``(N, 2)`` matches the pose was solved from (inliers), or None.
+        points_world: ``(M, 3)`` triangulated points, world frame, or None.
+        point_colors: ``(M, 3)`` uint8 RGB colours of those points, or None.
+        tracks: the new keyframe's tracks when this frame becomes the keyframe, else None.
+        step_norm: length of the step from the keyframe (two-view steps), else None.
+    """
+
+    branch: Branch
+    reason: str
+    T_world_cam: np.ndarray
+    T_ref_cam: np.ndarray
+    stats: dict = field(default_factory=dict)
+    pts_ref: np.ndarray | None = None
+    pts_cur: np.ndarray | None = None
+    points_world: np.ndarray | None = None
+    point_colors: np.ndarray | None = None
+    tracks: Tracks | None = None
+    step_norm: float | None = None
+
+
+def identity_solution(T_world_ref: np.ndarray, why: str) -> Solution:
+    """The camera did not move: the keyframe's pose ``T_world_ref`` ``(4, 4)``."""
+    return Solution(Branch.IDENTITY, why, T_world_ref, np.eye(4))
+
+
+def failed_solution(T_world_ref: np.ndarray, T_world_last: np.ndarray, why: str) -> Solution:
+    """Nothing usable: keep the previous frame's pose ``T_world_last`` ``(4, 4)``."""
+    return Solution(Branch.FAILED, why + "; pose kept from the previous frame", T_world_last,
+                    invert_T(T_world_ref) @ T_world_last)
+
+
+def small_motion_solution(X_ref: np.ndarray | None, pts_ref: np.ndarray, pts_cur: np.ndarray,
+                          R_rot: np.ndarray, K: np.ndarray, T_world_ref: np.ndarray, why: str,
+                          reproj_px: float, seed: int) -> Solution:
+    """Too little parallax for two-view geometry: PnP on the keyframe's depth, else rotation only.
+
+    Args:
+        X_ref: ``(N, 3)`` keyframe-camera points of the matches that have depth, or
+            None when the keyframe has no depth yet.
+        pts_ref, pts_cur: ``(N, 2)`` their pixels in the keyframe and the current frame.
+        R_rot: ``(3, 3)`` best rotation-only fit (``X_cur ~ R_rot X_ref``), the fallback.
+        K: ``(3, 3)`` intrinsics. T_world_ref: ``(4, 4)`` keyframe pose.
+        why: the reason the two-view step was not taken.
+        reproj_px, seed: PnP RANSAC threshold and seed.
+
+    Returns:
+        A :class:`Solution` with branch PNP (``T_cur_ref`` from PnP) or ROTATION.
+    """
+    if X_ref is not None:
+        (R, t, inl), ok = solve_pnp(X_ref, pts_cur, K, reproj_px=reproj_px, rng_seed=seed)
+        if ok:
+            T_ref_cam = invert_T(make_T(R, t))
+            return Solution(Branch.PNP, why, T_world_ref @ T_ref_cam, T_ref_cam, {"inliers": int(inl.sum())},
+                            pts_ref=pts_ref[inl], pts_cur=pts_cur[inl])
+        why += "; PnP failed"
+    else:
+        why += "; no depth yet: rotation only"
+    T_ref_cam = invert_T(make_T(R_rot, np.zeros(3)))
+    return Solution(Branch.ROTATION, why, T_world_ref @ T_ref_cam, T_ref_cam)
+
+
+def step_scale(scale: float, scale_ok: bool, last_step_norm: float | None) -> tuple[float, str, bool]:
+    """The step length when the depth could not fix it: ``(scale, reason, degraded)``.
+
+    The first two-view step of a run sets the unit of scale (1); later ones assume
+    constant speed (the last step's length) and are marked degraded.
+    """
+    if scale_ok:
+        return scale, "", False
+    if last_step_norm is None:
+        return 1.0, "first two-view step sets the unit of scale", False
+    return last_step_norm, "scale lost (too few points with depth): constant speed assumed", True
+
+
+class FrontEnd:
+    """Solves one frame against the reference keyframe (TrianFlow's per-pair recipe).
+
+    Args:
+        camera: working-resolution :class:`~trianflow_vo.camera.PinholeCamera`.
+        flow: a :class:`~trianflow_vo.flow.base.FlowSource`.
+        config: the run's :class:`~trianflow_vo.config.Config`.
+        rng: the run's random generator (match sampling, RANSAC subsets).
+    """
+
+    def __init__(self, camera: PinholeCamera, flow: FlowSource, config: Config, rng: np.random.Generator):
+        self.camera = camera
+        self.K = camera.K
+        self.flow = flow
+        self.cfg = config
+        self.rng = rng
+        self.track_ids = TrackIds()
+        h, w = camera.size_hw
+        gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+        self._grid = np.stack([gx.ravel(), gy.ravel()], 1)
+
+    # -- matches ------------------------------------------------------------------------
+    def draw(self, score: np.ndarray, n: int, extra: np.ndarray | None = None) -> np.ndarray:
+        """Flat pixel indices: the top ``sampling.top_ratio`` of positive ``score`` ``(h, w)``,
+        then ``n`` of them at random, plus the indices ``extra`` ``(M,)``."""
+        flat = score.ravel()
+        pos = np.flatnonzero(flat > 0)
+        if pos.size == 0:
+            return np.zeros(0, dtype=np.int64)
+        k = max(1, int(np.ceil(self.cfg.sampling.top_ratio * pos.size)))
+        top = pos[np.argpartition(flat[pos], pos.size - k)[pos.size - k:]] if k < pos.size else pos
+        if top.size > n:
+            top = self.rng.choice(top, n, replace=False)
+        if extra is not None and extra.size:
+            top = np.union1d(top, extra)
+        return top
+
+    def pixels(self, idx: np.ndarray, fw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(pts_ref, pts_cur)`` ``(N, 2)`` float64 of flat indices ``idx`` under flow ``fw``."""
+        q1 = self._grid[idx].astype(np.float64)
+        return q1, q1 + fw.reshape(-1, 2)[idx]
+
+    def match(self, keyframe: Keyframe, prepared, tm: StageTimer) -> Matches:
+        """Flow both ways between ``keyframe`` and the current frame, masks, and drawn matches."""
+        t0 = time.perf_counter()
+        fw, bw = self.flow.flow_pair(keyframe.prepared, prepared)
+        t0 = tm.add("flow", t0)
+        _, m_s, m_o = flow_scores(fw, bw)
+        t0 = tm.add("masks", t0)
+        score = m_s * m_o
+        idx = self.draw(score, self.cfg.sampling.n_samples)
+        pts_ref, pts_cur = self.pixels(idx, fw)
+        mag = np.linalg.norm(fw.reshape(-1, 2)[idx], axis=1)
+        tm.add("sample", t0)
+        return Matches(fw, bw, score, idx, pts_ref, pts_cur, mag)
+
+    def _capped(self, idx: np.ndarray) -> np.ndarray:
+        cap = self.cfg.sampling.max_anchors
+        return self.rng.choice(idx, cap, replace=False) if idx.size > cap else idx
+
+    # -- branches -----------------------------------------------------------------------
+    def rotation(self, m: Matches, tm: StageTimer) -> tuple[np.ndarray, float]:
+        """``(R_rot (3, 3), median parallax px)``: the rotation-only fit and what it leaves."""
+        t0 = time.perf_counter()
+        R_rot, par = fit_rotation(m.pts_ref, m.pts_cur, self.K)
+        tm.add("rotation", t0)
+        return R_rot, float(np.median(par))
+
+    def pnp_inputs(self, ref: ReferenceDepth, m: Matches, score: np.ndarray):
+        """``(X_ref (N, 3), pts_ref, pts_cur)`` for PnP against the keyframe depth.
+
+        A dense depth uses the drawn matches; a sparse one every pixel that has
+        depth and a positive match score (capped at ``sampling.max_anchors``)."""
+        dflat = ref.depth.ravel()
+        cand = m.idx
+        if ref.sparse:
+            cand = self._capped(np.flatnonzero((dflat > 0) & (score.ravel() > 0)))
+        cand = cand[dflat[cand] > 0]
+        q1, q2 = self.pixels(cand, m.fw)
+        return unproject(q1, dflat[cand], self.K), q1, q2
+
+    def small_motion(self, keyframe: Keyframe, ref: ReferenceDepth | None, m: Matches, R_rot: np.ndarray,
+                     why: str, tm: StageTimer) -> Solution:
+        """PnP against the keyframe's depth, or rotation only while there is none (keyframe kept)."""
+        t0 = time.perf_counter()
+        g = self.cfg.geometry
+        if ref is None:
+            sol = small_motion_solution(None, m.pts_ref, m.pts_cur, R_rot, self.K, keyframe.T_world_cam, why,
+                                        g.pnp_reproj_px, self.cfg.sampling.seed)
+        else:
+            X, q1, q2 = self.pnp_inputs(ref, m, m.score)
+            sol = small_motion_solution(X, q1, q2, R_rot, self.K, keyframe.T_world_cam, why, g.pnp_reproj_px,
+                                        self.cfg.sampling.seed)
+            tm.add("pnp", t0)
+        return sol
+
+    def two_view(self, keyframe: Keyframe, ref: ReferenceDepth | None, m: Matches, R_rot: np.ndarray,
+                 last_step_norm: float | None, tm: StageTimer) -> Solution:
+        """Relative pose from the matches, mid-point triangulation, scale from the keyframe depth.
+
+        Falls back to :meth:`small_motion` when the geometry is degenerate. On
+        success the current frame becomes the keyframe: the solution carries its
+        :class:`~trianflow_vo.keyframe.Tracks` (the triangulated points, with the
+        ids of the tracks they continue)."""
+        g, K = self.cfg.geometry, self.K
+        t0 = time.perf_counter()
+        rel, ok = estimate_relative_pose(m.pts_ref, m.pts_cur, K, threshold_px=g.ransac_threshold_px,
+                                         method=g.ransac_method, refine=g.refine, inlier_px=g.epi_inlier_px,
+                                         rng=self.rng, ransac_subset=g.ransac_subset)
+        t0 = tm.add("pose", t0)
+        if not ok or rel.inliers.sum() < g.min_inliers:
+            n_in = 0 if rel is None else int(rel.inliers.sum())
+            return self.small_motion(keyframe, ref, m, R_rot, f"two-view geometry degenerate ({n_in} inliers)", tm)
+        stats = {"inliers": int(rel.inliers.sum()), "inlier_ratio": float(rel.inliers.mean())}
+        # matches re-drawn from M_r * M_s * M_o, plus every pixel that carries depth
+        score2 = inlier_score(epipolar_distance_map(rel.F, m.fw), g.epi_inlier_px) * m.score
+        anchors = None
+        if ref is not None and ref.sparse:
+            anchors = self._capped(np.flatnonzero((ref.depth.ravel() > 0) & (score2.ravel() > 0)))
+        idx2 = self.draw(score2, self.cfg.sampling.n_samples, anchors)
+        t0 = tm.add("redraw", t0)
+        q1, q2 = self.pixels(idx2, m.fw)
+        R, t_unit = rel.R, rel.t
+        X, valid, angle = triangulate_midpoint(q1, q2, K, R, t_unit, min_angle=g.min_angle_rad)
+        t0 = tm.add("triangulate", t0)
+        if valid.sum() < self.cfg.scale.min_points:
+            return self.small_motion(keyframe, ref, m, R_rot, f"only {int(valid.sum())} points triangulated", tm)
+        branch, how = Branch.TWO_VIEW, ""
+        d_ref, w_ref, w_new, w_scale = self._depths_at(ref, idx2, valid, angle)
+        scale, scale_ok = 1.0, False
+        if ref is not None:
+            scale, scale_ok = align_scale(X[valid, 2], d_ref, weights=w_scale, min_points=self.cfg.scale.min_points)
+            stats["scale_points"] = int((d_ref > 0).sum())
+        if scale_ok and self.cfg.scale.pnp_check_ratio > 0:
+            # a two-view step on a short baseline can get the translation direction, and so the
+            # scale, badly wrong; PnP on the same depth says how far the camera really moved
+            Xp, _, q2p = self.pnp_inputs(ref, m, m.score)
+            (Rp, tp, _), okp = solve_pnp(Xp, q2p, K, reproj_px=g.pnp_reproj_px, rng_seed=self.cfg.sampling.seed)
+            tn = float(np.linalg.norm(tp))
+            if okp and tn > 0:
+                ratio = tn / scale
+                stats["pnp_ratio"] = ratio
+                if abs(np.log(ratio)) > np.log(self.cfg.scale.pnp_check_ratio):
+                    R, t_unit, scale = Rp, tp / tn, tn
+                    X, valid, angle = triangulate_midpoint(q1, q2, K, R, t_unit, min_angle=g.min_angle_rad)
+                    d_ref, w_ref, w_new, w_scale = self._depths_at(ref, idx2, valid, angle)
+                    branch = Branch.PNP
+                    how = f"two-view scale disagreed with PnP by {ratio:.2f}x: PnP pose used"
+        scale, lost, degraded = step_scale(scale, scale_ok, last_step_norm)
+        how = how or lost
+        if degraded:
+            stats["degraded"] = True
+        t0 = tm.add("scale", t0)
+        stats["scale"] = float(scale)
+        t_s = t_unit * scale
+        X_s = X[valid] * scale
+        w_out = w_new
+        if scale_ok and self.cfg.depth.fusion and w_ref is not None:
+            # small depth filter: fuse carried and new depth along each ray (in log depth)
+            d_f, w_out = fuse_log_depth(d_ref, w_ref, X_s[:, 2], w_new, max_log_gap=self.cfg.depth.max_log_gap)
+            X_s = X_s * (d_f / X_s[:, 2])[:, None]
+        T_ref_cam = invert_T(make_T(R, t_s))
+        tracks = self._new_tracks(ref, idx2[valid], X_s @ R.T + t_s, w_out)
+        Tw = keyframe.T_world_cam
+        gray = keyframe.image[np.rint(q1[valid, 1]).astype(int), np.rint(q1[valid, 0]).astype(int)]
+        sol = Solution(branch, how, Tw @ T_ref_cam, T_ref_cam, stats, pts_ref=q1[valid], pts_cur=q2[valid],
+                       points_world=X_s @ Tw[:3, :3].T + Tw[:3, 3], point_colors=gray[:, ::-1].copy(),
+                       tracks=tracks, step_norm=float(np.linalg.norm(t_s)))
+        tm.add("bookkeeping", t0)
+        return sol
+
+    def _depths_at(self, ref: ReferenceDepth | None, idx: np.ndarray, valid: np.ndarray, angle: np.ndarray):
+        """``(d_ref, w_ref, w_new, w_scale)`` at the valid triangulated pixels ``idx[valid]``.
+
+        ``w_new``: information of a new depth (parallax angle squared); ``w_ref``: the
+        keyframe depth's, decayed by ``depth.decay`` (None for a prior without
+        confidence, which is then trusted fully); ``w_scale``: a ratio is as reliable
+        as the less reliable of its two depths. None entries when there is no depth."""
+        w_new = angle[valid] ** 2
+        if ref is None:
+            return None, None, w_new, None
+        d_ref = ref.depth.ravel()[idx][valid]
+        if ref.weight is None:
+            w_ref = None
+            w_scale = 1.0 / (1.0 / np.maximum(w_new, 1e-12))
+        else:
+            w_ref = ref.weight.ravel()[idx][valid] * self.cfg.depth.decay
+            w_scale = 1.0 / (1.0 / np.maximum(w_new, 1e-12) + 1.0 / np.maximum(w_ref, 1e-12))
+        return d_ref, w_ref, w_new, w_scale
+
+    def _new_tracks(self, ref: ReferenceDepth | None, idx: np.ndarray, X_cur: np.ndarray,
+                    weight: np.ndarray) -> Tracks:
+        """Tracks of the new keyframe: points ``X_cur`` ``(N, 3)`` (current camera) triangulated
+        at keyframe pixels ``idx`` ``(N,)``; a pixel that carried a track continues it."""
+        ids = np.full(idx.shape[0], -1, dtype=np.int64)
+        if ref is not None and ref.track_ids is not None:
+            ids = ref.track_ids.ravel()[idx].copy()
+        born = ids < 0
+        ids[born] = self.track_ids.new(int(born.sum()))
+        uv = project(X_cur, self.K)
+        d = X_cur[:, 2]
+        h, w = self.camera.size_hw
+        xi, yi = np.rint(uv[:, 0]), np.rint(uv[:, 1])
+        keep = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h) & np.isfinite(d) & (d > 0)
+        return Tracks(ids[keep], uv[keep], d[keep], np.asarray(weight, dtype=np.float64)[keep])
