@@ -33,12 +33,10 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
 
 KITTI_LENGTHS = [10.0, 20.0, 30.0, 40.0, 50.0]
 INDOOR_LENGTHS = [0.5, 1.0, 1.5, 2.0]
-# name: (folder, stride, end, segment lengths, RunConfig overrides of the dense method)
+# name: (folder, stride, end, segment lengths, configuration overrides of the dense method)
 CASES = {
     "kitti00-s1": ("kitti00-f0000-0150", 1, None, KITTI_LENGTHS, {}),
     "kitti00-s3": ("kitti00-f0000-0150", 3, None, KITTI_LENGTHS, {}),
@@ -46,8 +44,8 @@ CASES = {
     "7scenes-s1": ("7scenes-kitchen-f0000-0499", 1, None, INDOOR_LENGTHS, {}),
     "7scenes-s3": ("7scenes-kitchen-f0000-0499", 3, None, INDOOR_LENGTHS, {}),
     # not the default: the finer DIS setting recommended for hand-held indoor video
-    "7scenes-s1-fine": ("7scenes-kitchen-f0000-0499", 1, None, INDOOR_LENGTHS, {"dis_preset": "fine"}),
-    "7scenes-s3-fine": ("7scenes-kitchen-f0000-0499", 3, None, INDOOR_LENGTHS, {"dis_preset": "fine"}),
+    "7scenes-s1-fine": ("7scenes-kitchen-f0000-0499", 1, None, INDOOR_LENGTHS, {"flow": {"dis_preset": "fine"}}),
+    "7scenes-s3-fine": ("7scenes-kitchen-f0000-0499", 3, None, INDOOR_LENGTHS, {"flow": {"dis_preset": "fine"}}),
 }
 MEMORY_CASE = "7scenes-kitchen-f0000-0499"  # dense, --end 150 vs all 500 frames
 TARGET_ATE_KITTI = 0.3
@@ -72,31 +70,32 @@ def _worker(job: dict) -> dict:
     cv2.setNumThreads(THREADS)
     from trianflow_vo.eval.evaluate import evaluate
     from trianflow_vo.io.trajectory import read_trajectory
-    from trianflow_vo.pipeline import load_ground_truth
+    from trianflow_vo.config import Config, merge_dict
+    from trianflow_vo.eval import load_ground_truth
 
     seq = Path(job["seq"])
     t0 = time.perf_counter()
     out = Path(job["out_dir"])
     if job["method"] == "dense":
-        from trianflow_vo.config import RunConfig
         from trianflow_vo.pipeline import run
 
-        cfg = RunConfig(seq=seq, out_dir=out, stride=job["stride"], end=job["end"], seed=job["seed"],
-                        threads=THREADS, plot=False, quiet=True, **job.get("overrides", {}))
-        summary = run(cfg)
+        cfg = merge_dict(Config(), {"input": {"stride": job["stride"], "end": job["end"]},
+                                    "sampling": {"seed": job["seed"]}, "runtime": {"threads": THREADS},
+                                    "output": {"plot": False}}, "benchmark")
+        summary = run(seq, out, merge_dict(cfg, job.get("overrides", {}), "benchmark case"))
     else:
-        from trianflow_vo.baseline.sparse import SparseParams, run_sparse
+        from trianflow_vo.baseline.sparse import run_sparse
 
-        base = SparseParams()
-        params = dataclasses.replace(base, geometry=dataclasses.replace(base.geometry, seed=job["seed"]))
-        summary = run_sparse(seq, out, stride=job["stride"], end=job["end"], params=params)
+        cfg = merge_dict(Config(), {"sampling": {"seed": job["seed"]}}, "benchmark")
+        summary = run_sparse(seq, out, stride=job["stride"], end=job["end"], config=cfg)
     poses = read_trajectory(out / "poses.txt").poses
     frames = np.loadtxt(out / "frames.txt", dtype=np.int64, ndmin=1)
     res = {"branch_counts": summary["branch_counts"], "timing_ms_median": summary["timing_ms_median"],
            "frames_processed": summary["frames_processed"], "fps": summary["fps"],
            "elapsed_s": summary["elapsed_s"]}
     wall = time.perf_counter() - t0
-    gt_poses, gt_frames = load_ground_truth(seq / "poses.txt")
+    gt = load_ground_truth(seq / "poses.txt")
+    gt_poses, gt_frames = gt.poses, gt.frames
     m = evaluate(poses, frames, gt_poses, gt_frames, align="7dof", lengths=job["lengths"], step=1)
     res.update({
         "ate_rmse": m["ate_rmse"],
