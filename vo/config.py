@@ -1,54 +1,636 @@
-"""Frozen run configuration. The CLI builds one; library users may too."""
+"""The one configuration tree: frozen dataclasses, the only place defaults live.
+
+:class:`Config` has one section per concern (``input``, ``flow``, ``depth``, ...),
+each a frozen dataclass whose fields carry their default, a one-line help text and
+their constraint. Every section validates (and normalises: ``str`` -> ``Path``,
+list -> tuple, ``"256x832"`` -> ``(256, 832)``) in ``__post_init__``, so a bad value
+raises :class:`ConfigError` (a ``ValueError``) however the config is built.
+
+Files, presets and ``--set`` overrides go through :func:`load_config`,
+:func:`merge_dict` and :func:`apply_overrides`; their errors name the file or option,
+the dotted key and what is valid. Precedence in the CLI: defaults < ``--config`` <
+``--set`` < explicit shortcut flags.
+
+Only the standard library here; ``yaml`` is imported inside the functions that use it.
+"""
 
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
+import math
+import numbers
+import os
+import re
+import types
+import typing
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, Literal, Union
+
+from trianflow_vo.errors import ConfigError
+
+__all__ = [
+    "Config", "InputConfig", "FlowConfig", "DepthConfig", "SamplingConfig", "GeometryConfig", "ScaleConfig",
+    "KeyframeConfig", "BackendConfig", "OutputConfig", "RuntimeConfig", "ConfigError",
+    "config_from_dict", "load_config", "apply_overrides", "merge_dict", "write_config_yaml", "config_keys",
+    "preset_names",
+]
+
+PRESET_PACKAGE = "trianflow_vo.configs"
+HEADER = "# Effective configuration; reproduce the run with: trianflow-vo run SEQ --config THIS_FILE"
+
+
+# -- field declarations -----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _Range:
+    """A numeric interval; ``None`` = unbounded on that side."""
+
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+
+    def __contains__(self, v: float) -> bool:
+        if self.lo is not None and not (v > self.lo if self.lo_open else v >= self.lo):
+            return False
+        if self.hi is not None and not (v < self.hi if self.hi_open else v <= self.hi):
+            return False
+        return True
+
+    def text(self) -> str:
+        """``(0, 1]`` when bounded on both sides, else ``>= 0`` / ``> 0`` / ``<= 9``."""
+        if self.lo is not None and self.hi is not None:
+            return f"{'(' if self.lo_open else '['}{_num(self.lo)}, {_num(self.hi)}{')' if self.hi_open else ']'}"
+        if self.lo is not None:
+            return f"{'>' if self.lo_open else '>='} {_num(self.lo)}"
+        return f"{'<' if self.hi_open else '<='} {_num(self.hi)}"
+
+    def error(self, v: float) -> str:
+        if self.lo is not None and self.hi is not None:
+            return f"{_show(v)} is out of range {self.text()}"
+        return f"{_show(v)} is out of range; must be {self.text()}"
+
+
+def _opt(default: Any, help: str, *, range: _Range | None = None, check: Callable[[Any], str | None] | None = None,
+         rule: str = "", sep: str = "", form: str = "") -> Any:
+    """A config field: ``default``, one-line ``help`` and its constraint.
+
+    range: numeric interval of a scalar. check: ``value -> error message or None`` for
+    anything else, described in docs by ``rule``. sep/form: a tuple field also accepts a
+    string of its items joined by ``sep``; ``form`` is how docs write its type.
+    """
+    return field(default=default, metadata={"help": help, "range": range, "check": check, "rule": rule,
+                                            "sep": sep, "form": form})
+
+
+def _multiples_of_64(hw: tuple[int, int]) -> str | None:
+    if all(v > 0 and v % 64 == 0 for v in hw):
+        return None
+    return f"{_show(list(hw))} is not two positive multiples of 64 (h, w), e.g. [256, 832] or '256x832'"
+
+
+def _positive_focal(k: tuple[float, float, float, float]) -> str | None:
+    return None if k[0] > 0 and k[1] > 0 else f"{_show(list(k))} has fx or fy <= 0 (fx, fy, cx, cy; fx, fy > 0)"
+
+
+def _ratio_or_off(v: float) -> str | None:
+    return None if v == 0 or v > 1 else f"{_show(v)} is out of range; must be 0 (off) or > 1"
+
+
+class _Section:
+    """Base of the section dataclasses: validates and normalises every field after ``__init__``."""
+
+    NAME = ""  # the section's key in Config, e.g. "input"
+
+    def __post_init__(self) -> None:
+        source = type(self).__name__
+        hints = _hints(type(self))
+        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+            v = getattr(self, f.name)
+            nv = _check_value(hints[f.name], f.metadata, v, source, f"{self.NAME}.{f.name}")
+            if nv is not v:
+                object.__setattr__(self, f.name, nv)
+        self._check_together(source)
+
+    def _check_together(self, source: str) -> None:
+        """Constraints between fields of the section (none by default)."""
 
 
 @dataclass(frozen=True)
-class RunConfig:
-    """Everything ``vo.pipeline.run`` needs. Paths are not resolved here."""
+class InputConfig(_Section):
+    """Which frames to read and the camera."""
 
-    seq: Path
-    out_dir: Path
-    # frame selection
-    start: int = 0
-    end: int | None = None  # exclusive source index; None = to the end
-    stride: int = 1
-    # camera
-    intrinsics: tuple[float, float, float, float] | None = None  # fx, fy, cx, cy at source resolution
-    calib: Path | None = None
-    size: tuple[int, int] | None = None  # working (h, w); None = automatic
-    # models (None = weight-free: OpenCV DIS flow, depth from triangulation)
-    flow_model: Path | None = None
-    depth_model: Path | None = None
-    threads: int = 2
-    # method parameters
-    seed: int = 0
-    n_samples: int = 6000
-    top_ratio: float = 0.2
-    dis_preset: str = "medium"
-    ransac_threshold_px: float = 0.25
-    refine: bool = True
-    min_parallax_px: float = 3.0
-    min_flow_px: float = 5.0
-    min_inliers: int = 100
-    ransac_method: str = "ransac"
-    depth_fusion: bool = True
-    depth_decay: float = 0.8
-    pnp_check_ratio: float = 1.5
-    # outputs
-    rerun: Path | None = None
-    rerun_spawn: bool = False
-    gt: Path | None = None
-    plot: bool = True
-    quiet: bool = False
+    NAME = "input"
+    start: int = _opt(0, "first source frame index to read", range=_Range(0))
+    end: int | None = _opt(None, "source frame index to stop before (exclusive); null = to the end",
+                           rule="> input.start")
+    stride: int = _opt(1, "read every stride-th source frame", range=_Range(1))
+    size: tuple[int, int] | None = _opt(None, "working (h, w) the frames are resized to; null = automatic",
+                                        check=_multiples_of_64, rule="positive multiples of 64", sep="x",
+                                        form="HxW or [h, w]")
+    intrinsics: tuple[float, float, float, float] | None = _opt(
+        None, "camera fx, fy, cx, cy in pixels at source resolution; null = from input.calib or the sequence",
+        check=_positive_focal, rule="fx, fy > 0", sep=",", form="fx,fy,cx,cy or [fx, fy, cx, cy]")
+    calib: Path | None = _opt(
+        None, "calibration file: KITTI calib.txt, a 3x3 K or 'fx fy cx cy'; null = the sequence's own")
+
+    def _check_together(self, source: str) -> None:
+        if self.end is not None and self.end <= self.start:
+            raise ConfigError(f"{self.end} must be greater than input.start ({self.start})", source, "input.end")
+
+
+@dataclass(frozen=True)
+class FlowConfig(_Section):
+    """Optical flow between the keyframe and the current frame."""
+
+    NAME = "flow"
+    model: Path | None = _opt(None, "ONNX optical-flow network; null = OpenCV DIS flow (no weights)")
+    dis_preset: Literal["fast", "medium", "fine"] = _opt("medium", "OpenCV DIS preset when flow.model is null")
+
+
+@dataclass(frozen=True)
+class DepthConfig(_Section):
+    """Keyframe depth: a network or carried from triangulation, fused along rays."""
+
+    NAME = "depth"
+    model: Path | None = _opt(None, "ONNX depth network; null = depth carried from triangulation")
+    fusion: bool = _opt(True, "fuse the carried depth with each new triangulation along the rays")
+    decay: float = _opt(0.8, "weight the carried depth keeps per keyframe step",
+                        range=_Range(0.0, 1.0, lo_open=True))
+    max_log_gap: float = _opt(0.3, "largest |log(carried / new depth)| that is fused; larger gaps take the new",
+                              range=_Range(0.0, lo_open=True))
+
+
+@dataclass(frozen=True)
+class SamplingConfig(_Section):
+    """Which flow matches are drawn per frame pair."""
+
+    NAME = "sampling"
+    n_samples: int = _opt(6000, "flow matches drawn per frame pair", range=_Range(100, 100000))
+    top_ratio: float = _opt(0.2, "fraction of best-scored pixels the matches are drawn from",
+                            range=_Range(0.0, 1.0, lo_open=True))
+    max_anchors: int = _opt(6000, "most sparse-depth pixels used as PnP anchors", range=_Range(0))
+    seed: int = _opt(0, "random seed of sampling and RANSAC (runs are reproducible)", range=_Range(0))
+
+
+@dataclass(frozen=True)
+class GeometryConfig(_Section):
+    """Two-view geometry, triangulation and PnP."""
+
+    NAME = "geometry"
+    ransac_method: Literal["ransac", "magsac", "8point"] = _opt(
+        "ransac", "fundamental-matrix estimator: OpenCV RANSAC, MAGSAC++ or plain 8-point")
+    ransac_threshold_px: float = _opt(0.25, "RANSAC inlier threshold in pixels", range=_Range(0.0, lo_open=True))
+    ransac_subset: int = _opt(1000, "matches drawn at random for RANSAC when refine is on", range=_Range(8))
+    refine: bool = _opt(True, "refine the fundamental matrix on all inliers after RANSAC")
+    epi_inlier_px: float = _opt(0.5, "Sampson distance in pixels under which a match is an inlier",
+                                range=_Range(0.0, lo_open=True))
+    min_inliers: int = _opt(100, "fewest reliable matches / inliers to accept a frame pair", range=_Range(8))
+    min_angle_rad: float = _opt(1e-3, "triangulated rays meeting at a smaller angle (radians) are dropped",
+                                range=_Range(0.0))
+    pnp_reproj_px: float = _opt(1.0, "PnP RANSAC reprojection threshold in pixels", range=_Range(0.0, lo_open=True))
+
+
+@dataclass(frozen=True)
+class ScaleConfig(_Section):
+    """Scale of the two-view translation against the keyframe depth."""
+
+    NAME = "scale"
+    min_points: int = _opt(20, "fewest triangulated points with reference depth to align the scale",
+                           range=_Range(3))
+    pnp_check_ratio: float = _opt(1.5, "PnP replaces the two-view step when their scales differ by more than "
+                                       "this factor; 0 = no check", check=_ratio_or_off, rule="0 (off) or > 1")
+
+
+@dataclass(frozen=True)
+class KeyframeConfig(_Section):
+    """When the camera counts as static and when a new keyframe is made."""
+
+    NAME = "keyframes"
+    static_flow_px: float = _opt(0.25, "median flow in pixels under which the camera is taken as static",
+                                 range=_Range(0.0))
+    min_parallax_px: float = _opt(3.0, "median parallax in pixels (rotation removed) needed for a new keyframe",
+                                  range=_Range(0.0, 100.0))
+
+
+@dataclass(frozen=True)
+class BackendConfig(_Section):
+    """What revises poses after each new keyframe."""
+
+    NAME = "backend"
+    # add a back-end by adding its name to this Literal
+    kind: Literal["none"] = _opt("none", "back-end run on each new keyframe; none = front-end poses only")
+
+
+@dataclass(frozen=True)
+class OutputConfig(_Section):
+    """What the run writes besides the trajectory."""
+
+    NAME = "output"
+    gt: Path | None = _opt(None, "ground-truth trajectory to evaluate against; null = none")
+    plot: bool = _opt(True, "write trajectory plots")
+    rerun: Path | None = _opt(None, "write a Rerun recording (.rrd) here; null = none")
+    rerun_spawn: bool = _opt(False, "open the Rerun viewer live while running")
+
+
+@dataclass(frozen=True)
+class RuntimeConfig(_Section):
+    """Compute resources."""
+
+    NAME = "runtime"
+    threads: int = _opt(2, "CPU threads for OpenCV and the ONNX runtime", range=_Range(1, 64))
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole configuration of a run; ``Config()`` is the defaults."""
+
+    input: InputConfig = field(default_factory=InputConfig)
+    flow: FlowConfig = field(default_factory=FlowConfig)
+    depth: DepthConfig = field(default_factory=DepthConfig)
+    sampling: SamplingConfig = field(default_factory=SamplingConfig)
+    geometry: GeometryConfig = field(default_factory=GeometryConfig)
+    scale: ScaleConfig = field(default_factory=ScaleConfig)
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    backend: BackendConfig = field(default_factory=BackendConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+    runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
+
+    def __post_init__(self) -> None:
+        hints = _hints(Config)
+        for f in dataclasses.fields(self):
+            cls = hints[f.name]
+            v = getattr(self, f.name)
+            if not isinstance(v, cls):
+                raise ConfigError(f"section '{f.name}' must be a {cls.__name__}, got {type(v).__name__}", "Config")
 
     def to_dict(self) -> dict:
-        out = {}
-        for f in dataclasses.fields(self):
-            v = getattr(self, f.name)
-            out[f.name] = str(v) if isinstance(v, Path) else (list(v) if isinstance(v, tuple) else v)
+        """Nested plain dict (Path -> str, tuple -> list), JSON/YAML-ready, sections in order."""
+        return {s.name: {f.name: _plain(getattr(getattr(self, s.name), f.name))
+                         for f in dataclasses.fields(getattr(self, s.name))}
+                for s in dataclasses.fields(self)}
+
+
+# -- checking values --------------------------------------------------------------------------------------------
+_HINTS: dict[type, dict[str, Any]] = {}
+_FLOAT_NO_DOT = re.compile(r"[-+]?[0-9]+[eE][-+]?[0-9]+")  # '1e-3': a string to YAML 1.1, a float to us
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    if cls not in _HINTS:
+        _HINTS[cls] = typing.get_type_hints(cls)
+    return _HINTS[cls]
+
+
+def _num(v: float) -> str:
+    return str(int(v)) if float(v).is_integer() else repr(float(v))
+
+
+def _show(v: Any) -> str:
+    """A value as a user wrote it: strings quoted, paths as strings, None as null."""
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, os.PathLike):
+        return repr(os.fspath(v))
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_show(x) for x in v) + "]"
+    return repr(v)
+
+
+def _plain(v: Any) -> Any:
+    if isinstance(v, Path):
+        return str(v)
+    if isinstance(v, tuple):
+        return [_plain(x) for x in v]
+    return v
+
+
+def _split_optional(hint: Any) -> tuple[Any, bool]:
+    if typing.get_origin(hint) in (Union, types.UnionType):
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        if len(args) != 1:
+            raise TypeError(f"unsupported config type {hint!r}")
+        return args[0], True
+    return hint, False
+
+
+class _Bad(Exception):
+    """A value that does not fit (message without source or key)."""
+
+
+def _as_int(v: Any) -> int:
+    if isinstance(v, bool) or not isinstance(v, numbers.Integral):
+        raise _Bad(f"{_show(v)} is not an integer")
+    return int(v)
+
+
+def _as_float(v: Any) -> float:
+    if isinstance(v, str) and _FLOAT_NO_DOT.fullmatch(v.strip()):
+        v = float(v)
+    if isinstance(v, bool) or not isinstance(v, numbers.Real):
+        raise _Bad(f"{_show(v)} is not a number")
+    f = float(v)
+    if not math.isfinite(f):
+        raise _Bad(f"{_show(v)} is not a finite number")
+    return f
+
+
+def _coerce(hint: Any, meta: Mapping[str, Any], v: Any) -> Any:
+    base, optional = _split_optional(hint)
+    if v is None:
+        if optional:
+            return None
+        raise _Bad(f"null is not allowed; expected {_type_text(hint, meta)}")
+    origin = typing.get_origin(base)
+    if origin is Literal:
+        choices = typing.get_args(base)
+        if isinstance(v, str) and v in choices:
+            return v
+        raise _Bad(f"{_show(v)} is not one of {', '.join(choices)}")
+    if base is bool:
+        if isinstance(v, bool):
+            return v
+        raise _Bad(f"{_show(v)} is not a bool (true or false)")
+    if base is int:
+        return _as_int(v)
+    if base is float:
+        return _as_float(v)
+    if base is str:
+        if isinstance(v, str):
+            return v
+        raise _Bad(f"{_show(v)} is not a string")
+    if base is Path:
+        if isinstance(v, (str, os.PathLike)) and not isinstance(v, bytes):
+            if os.fspath(v) == "":
+                raise _Bad("'' is not a path (use null for none)")
+            return v if type(v) is type(Path()) else Path(v)
+        raise _Bad(f"{_show(v)} is not a path")
+    if origin is tuple:
+        items = typing.get_args(base)
+        form = meta.get("form") or f"a list of {len(items)}"
+        sep = meta.get("sep")
+        raw = v
+        if isinstance(v, str) and sep:
+            parts = re.split(re.escape(sep), v.strip(), flags=re.IGNORECASE)
+            try:
+                v = [int(p) if items[0] is int else float(p) for p in parts]
+            except ValueError:
+                raise _Bad(f"{_show(raw)} is not {form}") from None
+        if not isinstance(v, (list, tuple)) or len(v) != len(items):
+            raise _Bad(f"{_show(raw)} is not {form}")
+        try:
+            out = tuple(_coerce(t, {}, x) for t, x in zip(items, v))
+        except _Bad:
+            raise _Bad(f"{_show(raw)} is not {form}") from None
         return out
+    raise TypeError(f"unsupported config type {hint!r}")
+
+
+def _check_value(hint: Any, meta: Mapping[str, Any], v: Any, source: str, key: str) -> Any:
+    """``v`` normalised to the field's type, or ConfigError naming ``source`` and ``key``."""
+    try:
+        out = _coerce(hint, meta, v)
+        if out is not None:
+            rng, check = meta.get("range"), meta.get("check")
+            if rng is not None and out not in rng:
+                raise _Bad(rng.error(v))
+            if check is not None:
+                msg = check(out)
+                if msg:
+                    raise _Bad(msg)
+    except _Bad as e:
+        raise ConfigError(str(e), source, key) from None
+    return out
+
+
+def _type_text(hint: Any, meta: Mapping[str, Any]) -> str:
+    base, optional = _split_optional(hint)
+    origin = typing.get_origin(base)
+    if origin is Literal:
+        text = "one of " + ", ".join(typing.get_args(base))
+    elif origin is tuple:
+        text = meta.get("form") or "list"
+    else:
+        text = {bool: "bool", int: "int", float: "float", str: "str", Path: "path"}[base]
+    rng = meta.get("range")
+    if rng is not None:
+        rule = rng.text()
+        text += (" in " if rule[0] in "[(" else " ") + rule
+    elif meta.get("rule"):
+        rule = meta["rule"]
+        text += ((" " if rule[0] in "<>" else ": ") if origin is None else ", ") + rule
+    if optional:
+        text += ", or null" if "," in text or " " in text else " or null"
+    return text
+
+
+# -- building ---------------------------------------------------------------------------------------------------
+def _section_classes() -> dict[str, type]:
+    return dict(_hints(Config))
+
+
+def merge_dict(config: Config, data: Mapping, source: str) -> Config:
+    """``config`` with the partial nested dict ``data`` (``{section: {key: value}}``) applied on top.
+
+    A section given as null (all its keys commented out in YAML) changes nothing.
+    Raises ConfigError naming ``source`` on an unknown section or key or a bad value.
+    """
+    sections = _section_classes()
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"the configuration must be a mapping of sections ({', '.join(sections)}), "
+                          f"got {_type_name(data)}", source)
+    new: dict[str, Any] = {}
+    for name, values in data.items():
+        if name not in sections:
+            raise ConfigError(f"unknown section {_show(name)}; valid sections: {', '.join(sections)}", source)
+        if values is None:
+            continue
+        if not isinstance(values, Mapping):
+            raise ConfigError(f"section '{name}' must be a mapping of keys, got {_type_name(values)}", source)
+        current = new.get(name, getattr(config, name))
+        keys = [f.name for f in dataclasses.fields(current)]
+        for key in values:
+            if key not in keys:
+                raise ConfigError(f"unknown key '{name}.{key}'; valid keys of {name}: {', '.join(sorted(keys))}",
+                                  source)
+        try:
+            new[name] = dataclasses.replace(current, **values)
+        except ConfigError as e:
+            raise ConfigError(e.message, source, e.key) from None
+    return dataclasses.replace(config, **new) if new else config
+
+
+def config_from_dict(data: Mapping, source: str = "<dict>") -> Config:
+    """A Config from a partial nested dict (missing sections and keys keep their defaults)."""
+    return merge_dict(Config(), data, source)
+
+
+def apply_overrides(config: Config, overrides: Sequence[str], source: str = "--set") -> Config:
+    """``config`` with each ``section.key=value`` applied in order; values are parsed as YAML.
+
+    So ``3``, ``0.5``, ``true``, ``null`` (or nothing after ``=``), ``[256, 832]``, ``fine``.
+    """
+    import yaml
+
+    if isinstance(overrides, str):
+        overrides = [overrides]
+    for item in overrides:
+        text = item if isinstance(item, str) else repr(item)
+        left, eq, right = text.partition("=")
+        dotted = left.strip()
+        section, dot, key = dotted.partition(".")
+        if not eq or not dot or not section or not key:
+            raise ConfigError(f"{text!r} is not section.key=value (e.g. sampling.seed=3)", source)
+        try:
+            value = yaml.safe_load(right)
+        except yaml.YAMLError as e:
+            problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+            raise ConfigError(f"cannot read value {right!r} as YAML: {problem}", source, dotted) from None
+        config = merge_dict(config, {section: {key: value}}, source)
+    return config
+
+
+def _type_name(v: Any) -> str:
+    return {list: "a list", str: "a string", int: "an integer", float: "a number", bool: "a bool",
+            type(None): "null"}.get(type(v), type(v).__name__)
+
+
+# -- files and presets ------------------------------------------------------------------------------------------
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _parse_yaml(text: str, source: str) -> Any:
+    import yaml
+
+    try:
+        return yaml.safe_load(text)
+    except yaml.MarkedYAMLError as e:
+        mark = e.problem_mark or e.context_mark
+        what = _one_line(e.problem or e.context or "syntax error")
+        col = f" (column {mark.column + 1})" if mark is not None else ""
+        raise ConfigError(f"invalid YAML: {what}{col}", source, line=None if mark is None else mark.line + 1) \
+            from None
+    except yaml.YAMLError as e:
+        raise ConfigError(f"invalid YAML: {_one_line(e)}", source) from None
+
+
+def _parse_json(text: str, source: str) -> Any:
+    import json
+
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ConfigError(f"invalid JSON: {e.msg} (column {e.colno})", source, line=e.lineno) from None
+    if isinstance(doc, dict) and "config" in doc:  # a run.json: the configuration is under "config"
+        doc = doc["config"]
+        if not isinstance(doc, Mapping):
+            raise ConfigError(f"'config' must be a mapping of sections, got {_type_name(doc)}", source)
+    return doc
+
+
+def _from_document(doc: Any, source: str) -> Config:
+    if doc is None:  # an empty file (or only comments): the defaults
+        doc = {}
+    if not isinstance(doc, Mapping):
+        raise ConfigError(f"the document must be a mapping of sections ({', '.join(_section_classes())}), "
+                          f"got {_type_name(doc)}", source)
+    return config_from_dict(doc, source)
+
+
+def _load_file(path: Path) -> Config:
+    source = str(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise ConfigError("not a text file (UTF-8)", source) from None
+    except OSError as e:
+        raise ConfigError(f"cannot read: {e.strerror or e}", source) from None
+    doc = _parse_json(text, source) if path.suffix.lower() == ".json" else _parse_yaml(text, source)
+    return _from_document(doc, source)
+
+
+def _presets():
+    from importlib.resources import files
+
+    return files(PRESET_PACKAGE)
+
+
+def preset_names() -> list[str]:
+    """Names of the shipped presets (``default``, ``indoor``, ``kitti``), sorted."""
+    return sorted(e.name[:-5] for e in _presets().iterdir() if e.name.endswith(".yaml"))
+
+
+def load_config(path_or_name: str | Path) -> Config:
+    """A Config from a ``.yaml``/``.yml`` file, a ``.json`` file (a run.json's ``"config"``
+    mapping, or the whole document) or a shipped preset name (``default``, ``kitti``,
+    ``indoor``) that is not an existing file. Keys a file leaves out keep their defaults.
+    """
+    p = Path(path_or_name)
+    if p.is_file():
+        return _load_file(p)
+    name = os.fspath(path_or_name)
+    names = preset_names()
+    if name in names:
+        source = f"preset '{name}'"
+        doc = _parse_yaml((_presets() / f"{name}.yaml").read_text(encoding="utf-8"), source)
+        return _from_document(doc, source)
+    if p.is_dir():
+        raise ConfigError("is a directory, not a configuration file", name)
+    if not p.suffix and os.sep not in name and "/" not in name:
+        raise ConfigError(f"no such file or preset; presets: {', '.join(names)}", name)
+    raise ConfigError("no such file", name)
+
+
+def _yaml_value(v: Any) -> str:
+    """One value as a YAML flow scalar or flow list, e.g. ``0.25``, ``null``, ``[256, 832]``."""
+    import yaml
+
+    text = yaml.safe_dump(_plain(v), default_flow_style=True, width=10**6)
+    return text.removesuffix("\n").removesuffix("\n...").strip()
+
+
+def _render_yaml(config: Config, header: Sequence[str] = (), comments: bool = True) -> str:
+    """YAML text of every key of ``config``, grouped by section, with each key's help as a comment."""
+    lines = [f"# {h}" if h and not h.startswith("#") else h for h in header]
+    for s in dataclasses.fields(config):
+        section = getattr(config, s.name)
+        if lines:
+            lines.append("")
+        if comments and type(section).__doc__:
+            lines.append(f"# {type(section).__doc__.strip().splitlines()[0]}")
+        lines.append(f"{s.name}:")
+        rows = [(f"  {f.name}: {_yaml_value(getattr(section, f.name))}", f.metadata["help"])
+                for f in dataclasses.fields(section)]
+        width = max(len(r[0]) for r in rows)
+        for text, help in rows:
+            lines.append(f"{text.ljust(width)}  # {help}" if comments else text)
+    return "\n".join(lines) + "\n"
+
+
+def write_config_yaml(config: Config, path: Path) -> None:
+    """Write the full effective ``config`` as YAML that :func:`load_config` reads back equal."""
+    Path(path).write_text(_render_yaml(config, [HEADER]), encoding="utf-8")
+
+
+# -- docs -------------------------------------------------------------------------------------------------------
+def config_keys() -> list[tuple[str, str, object, str]]:
+    """``(dotted key, type text, default, help)`` of every field, in section and field order."""
+    out = []
+    for s, cls in _section_classes().items():
+        hints = _hints(cls)
+        for f in dataclasses.fields(cls):
+            out.append((f"{s}.{f.name}", _type_text(hints[f.name], f.metadata), f.default, f.metadata["help"]))
+    return out
+
+
+def _keys_markdown() -> str:
+    """The Markdown table of :func:`config_keys` (configs/README.md embeds it)."""
+    def cell(text: str) -> str:
+        return text.replace("|", "\\|")
+
+    rows = [f"| `{k}` | {cell(t)} | `{_yaml_value(d)}` | {cell(h)} |" for k, t, d, h in config_keys()]
+    return "\n".join(["| key | type | default | help |", "|---|---|---|---|", *rows]) + "\n"
