@@ -1,10 +1,11 @@
 """Per-pair time of the network path at 256x832: onnxruntime (ours) vs PyTorch eager.
 
-(a) ours: ``OnnxFlow`` (forward + backward flow in one call), ``OnnxDepth`` (depth once
+(a) ours: ``OnnxFlow`` (forward + backward flow in one call), ``OnnxDepthNet`` (depth once
     per frame: one depth inference per pair in a sequence), masks M_s / M_o with
-    numpy (``vo.flow.masks.flow_scores``) and, for comparison, in an ONNX graph.
+    numpy (``vo.flow.masks.flow_scores``). (An earlier variant also timed the masks as an
+    ONNX graph; it was slower and the graph option is gone, see NETWORK.md.)
 (b) research-style PyTorch eager: autograd on, flow 1->2 and 2->1 as two calls,
-    masks in torch, depth for both frames of every pair.
+    masks in torch (this file's ``_masks_torch``), depth for both frames of every pair.
 
 Both use the same architectures (paper sizes, random weights: timing does not depend
 on the weights) and the same thread count. Medians per stage are printed as a table
@@ -54,60 +55,72 @@ def _median_ms(values: list[float]) -> float:
 
 def export_models(out_dir: Path, size, seed: int) -> dict:
     from trianflow_vo.models.checkpoint import checkpoint_from_dict, random_checkpoint
-    from trianflow_vo.models.export import export_checkpoint, export_module
+    from trianflow_vo.models.export import export_checkpoint
 
     ckpt = checkpoint_from_dict(random_checkpoint(seed, size))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         export_checkpoint(ckpt, out_dir, size, seed)
-        import torch
-
-        from trianflow_vo.models.export import fb_distance_torch, occlusion_torch
-
-        class Masks(torch.nn.Module):
-            def forward(self, fw, bw):
-                d = fb_distance_torch(fw, bw)
-                return d, 1.0 / (0.1 + d), occlusion_torch(fw, bw)
-
-        h, w = size
-        z = torch.zeros(1, 2, h, w)
-        export_module(Masks(), (z, z), out_dir / "masks.onnx", ["flow_fw", "flow_bw"], ["d_fb", "m_s", "m_o"], {})
     return {"ckpt": ckpt}
 
 
+def _masks_torch(flow_fw, flow_bw, range_threshold: float = 0.5):
+    """The research-style baseline's masks, in torch: M_s = 1 / (0.1 + |f(x) + b(x + f(x))|)
+    and M_o (range map of ``flow_bw`` by bilinear splatting above the threshold, forward
+    flow landing inside the image). Batch size 1. Only the eager baseline uses it."""
+    import torch
+    import torch.nn.functional as F
+
+    _, _, h, w = flow_fw.shape
+    ys = torch.arange(h, dtype=flow_fw.dtype).view(h, 1).expand(h, w)
+    xs = torch.arange(w, dtype=flow_fw.dtype).view(1, w).expand(h, w)
+    grid = torch.stack(((xs + flow_fw[0, 0]) * (2.0 / (w - 1)) - 1.0,
+                        (ys + flow_fw[0, 1]) * (2.0 / (h - 1)) - 1.0), dim=2)[None]
+    d = flow_fw + F.grid_sample(flow_bw, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    m_s = 1.0 / (0.1 + torch.sqrt(d[:, :1] ** 2 + d[:, 1:] ** 2))
+    x = (xs + flow_bw[0, 0]).reshape(-1)
+    y = (ys + flow_bw[0, 1]).reshape(-1)
+    x0, y0 = torch.floor(x), torch.floor(y)
+    idx_all, wgt_all = [], []
+    for dx in (0.0, 1.0):
+        for dy in (0.0, 1.0):
+            xi, yi = x0 + dx, y0 + dy
+            wgt = (1.0 - torch.abs(x - xi)) * (1.0 - torch.abs(y - yi))
+            ok = (xi >= 0) & (xi <= w - 1) & (yi >= 0) & (yi <= h - 1)
+            idx_all.append((yi.clamp(0, h - 1) * w + xi.clamp(0, w - 1)).to(torch.int64))
+            wgt_all.append(torch.where(ok, wgt, torch.zeros_like(wgt)))
+    rng = torch.zeros(h * w, dtype=flow_bw.dtype).scatter_add(0, torch.cat(idx_all), torch.cat(wgt_all))
+    xt, yt = xs + flow_fw[0, 0], ys + flow_fw[0, 1]
+    inside = (xt >= 0) & (xt <= w - 1) & (yt >= 0) & (yt <= h - 1)
+    m_o = ((rng.view(h, w) > range_threshold) & inside).to(flow_fw.dtype)[None, None]
+    return m_s, m_o
+
+
 def bench_ours(model_dir: Path, frames, threads: int) -> dict:
-    from trianflow_vo.models.export import ort_session
-    from trianflow_vo.depth.onnx_depth import OnnxDepth
+    from trianflow_vo.depth.onnx_depth import OnnxDepthNet
     from trianflow_vo.flow.masks import flow_scores
     from trianflow_vo.flow.onnx_flow import OnnxFlow
 
     flow = OnnxFlow(model_dir / "flow.onnx", threads=threads)
-    depth = OnnxDepth(model_dir / "depth.onnx", threads=threads)
-    masks_sess = ort_session(model_dir / "masks.onnx", threads)
+    depth = OnnxDepthNet(model_dir / "depth.onnx", threads=threads)
     # warm-up (first runs allocate)
     p0 = flow.prepare(frames[0])
     flow.flow_pair(p0, p0)
-    depth.predict(-1, frames[0])
-    depth.forget(-1)
-    stages = {k: [] for k in ("prepare", "flow_fw_bw", "depth", "masks_numpy", "masks_onnx", "total")}
+    depth.predict(frames[0])
+    stages = {k: [] for k in ("prepare", "flow_fw_bw", "depth", "masks_numpy", "total")}
     prev, _ = _timed(flow.prepare, frames[0])
-    depth.predict(0, frames[0])
+    depth.predict(frames[0])
     for i in range(1, len(frames)):
         cur, t_prep = _timed(flow.prepare, frames[i])
         (fw, bw), t_flow = _timed(flow.flow_pair, prev, cur)
-        _, t_depth = _timed(depth.predict, i, frames[i])  # frame i-1 is cached from the last pair
-        depth.predict(i - 1, frames[i - 1])
+        # depth once per frame: frame i-1's depth was computed for the previous pair
+        _, t_depth = _timed(depth.predict, frames[i])
         _, t_mnp = _timed(flow_scores, fw, bw)
-        feed = {"flow_fw": np.ascontiguousarray(fw.transpose(2, 0, 1)[None]),
-                "flow_bw": np.ascontiguousarray(bw.transpose(2, 0, 1)[None])}
-        _, t_monnx = _timed(masks_sess.run, None, feed)
         stages["prepare"].append(t_prep)
         stages["flow_fw_bw"].append(t_flow)
         stages["depth"].append(t_depth)
         stages["masks_numpy"].append(t_mnp)
-        stages["masks_onnx"].append(t_monnx)
-        stages["total"].append(t_prep + t_flow + t_depth + min(t_mnp, t_monnx))
-        depth.forget(i - 1)
+        stages["total"].append(t_prep + t_flow + t_depth + t_mnp)
         prev = cur
     if depth.n_inferences != len(frames) + 1:  # + the warm-up
         raise RuntimeError(f"depth ran {depth.n_inferences} times for {len(frames)} frames")
@@ -117,7 +130,7 @@ def bench_ours(model_dir: Path, frames, threads: int) -> dict:
 def bench_torch_eager(ckpt, frames, threads: int) -> dict:
     import torch
 
-    from trianflow_vo.models.export import DepthGraph, FlowGraph, fb_distance_torch, occlusion_torch
+    from trianflow_vo.models.export import DepthGraph, FlowGraph
 
     torch.set_num_threads(threads)
     flow_net = FlowGraph(ckpt.flow.net, ckpt.flow.normalisation).eval()
@@ -135,8 +148,7 @@ def bench_torch_eager(ckpt, frames, threads: int) -> dict:
         return fw, bw
 
     def masks(fw, bw):
-        d = fb_distance_torch(fw, bw)
-        return 1.0 / (0.1 + d), occlusion_torch(fw, bw)
+        return _masks_torch(fw, bw)
 
     def depths(a, b):
         return depth_net(a), depth_net(b)
@@ -249,16 +261,16 @@ def _markdown(res: dict) -> str:
         f"| prepare (resize, convert) | {o['prepare']:.1f} | {t['prepare']:.1f} |",
         f"| flow forward + backward | {o['flow_fw_bw']:.1f} (one call, shared pyramid) | {t['flow_fw_bw']:.1f} (two calls) |",
         f"| depth | {o['depth']:.1f} (once per frame) | {t['depth']:.1f} (both frames) |",
-        f"| masks M_s, M_o | {min(o['masks_numpy'], o['masks_onnx']):.1f} ({res['masks_used']}) | {t['masks']:.1f} (torch) |",
+        f"| masks M_s, M_o | {o['masks_numpy']:.1f} (numpy) | {t['masks']:.1f} (torch) |",
         f"| **total network path** | **{o['total']:.1f}** | **{t['total']:.1f}** |",
         "",
         f"Ratio eager / ours: **{res['ratio_eager_over_ours']:.2f}x**. Target <= 300 ms per pair: "
         f"{'met' if o['total'] <= 300 else 'NOT met'}. Geometry (sampling, essential matrix, triangulation/PnP) "
         "is not in these numbers: see the pipeline timing in `run.json` (`timing_ms_median`).",
         "",
-        f"Masks: numpy (`vo.flow.masks.flow_scores`) {o['masks_numpy']:.1f} ms vs the same maths as an ONNX graph "
-        f"{o['masks_onnx']:.1f} ms; `OnnxFlow` returns flows only and the pipeline computes masks with "
-        f"{'numpy' if res['masks_used'] == 'numpy' else 'the graph'}.",
+        f"Masks: numpy (`vo.flow.masks.flow_scores`) {o['masks_numpy']:.1f} ms; `OnnxFlow` returns flows only and "
+        "the pipeline computes the masks with numpy. (The in-graph masks variant was removed: it measured about "
+        "twice as slow as numpy and the run path never used it.)",
         "",
         "Flow graph alone under onnxruntime settings:",
         "",
@@ -293,7 +305,7 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--size", default="256x832")
     ap.add_argument("--models", type=Path, default=None,
-                    help="directory with flow.onnx, depth.onnx, masks.onnx (default: export random ones)")
+                    help="directory with flow.onnx and depth.onnx (default: export random ones)")
     ap.add_argument("--json", type=Path, default=REPO / "benchmarks" / "out" / "network.json")
     ap.add_argument("--md", type=Path, default=REPO / "benchmarks" / "NETWORK.md")
     ap.add_argument("--render", type=Path, default=None, metavar="JSON",
@@ -334,7 +346,6 @@ def main(argv=None) -> int:
         "seq": str(args.seq.relative_to(REPO)) if args.seq.is_relative_to(REPO) else str(args.seq),
         "size_hw": list(size), "versions": {"onnxruntime": onnxruntime.__version__, "torch": torch.__version__},
         "ours_ms": ours, "torch_eager_ms": eager,
-        "masks_used": "numpy" if ours["masks_numpy"] <= ours["masks_onnx"] else "onnx",
         "ratio_eager_over_ours": eager["total"] / ours["total"],
         "target_ms": 300.0, "ort_settings": settings, "flow_breakdown": breakdown, "gflop": gflop,
     }
@@ -343,9 +354,8 @@ def main(argv=None) -> int:
     for k_ours, k_eager, label in (("prepare", "prepare", "prepare"), ("flow_fw_bw", "flow_fw_bw", "flow fw+bw"),
                                    ("depth", "depth", "depth"), (None, "masks", "masks"),
                                    ("total", "total", "total")):
-        v = min(ours["masks_numpy"], ours["masks_onnx"]) if k_ours is None else ours[k_ours]
+        v = ours["masks_numpy"] if k_ours is None else ours[k_ours]
         print(f"{label:28s} {v:12.1f} {eager[k_eager]:12.1f}")
-    print(f"masks numpy {ours['masks_numpy']:.1f} ms, masks onnx {ours['masks_onnx']:.1f} ms")
     print(f"ratio eager/ours {res['ratio_eager_over_ours']:.2f}x; target {res['target_ms']:.0f} ms "
           f"{'met' if ours['total'] <= 300 else 'NOT met'}")
     for r in settings:

@@ -25,12 +25,19 @@ def export(checkpoint, random_init, seed, size, out_dir):
     if (checkpoint is None) == (not random_init):
         raise click.UsageError("give exactly one of --checkpoint CKPT or --random-init")
     with user_errors():
+        from trianflow_vo.errors import DependencyError
+
         try:
             import torch  # noqa: F401
         except ImportError:
-            from trianflow_vo.errors import DependencyError
-
             raise DependencyError("export needs torch: pip install 'trianflow-vo[torch]'") from None
+        try:
+            import onnx  # noqa: F401
+        except ImportError:
+            raise DependencyError("export needs onnx: pip install 'trianflow-vo[torch]'") from None
+        from trianflow_vo.nets.onnx_runtime import require_onnxruntime
+
+        require_onnxruntime()  # the parity check runs the exported files
         import warnings
 
         from trianflow_vo.models.checkpoint import DEFAULT_SIZE, checkpoint_from_dict, load_checkpoint, random_checkpoint

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-torch = pytest.importorskip("torch")
+torch = pytest.importorskip("torch", reason="needs torch (pip install 'trianflow-vo[torch]')")
 
 from trianflow_vo.models.depth_net import DepthConfig, DepthNet, disp_to_depth  # noqa: E402
 from trianflow_vo.models.resnet_encoder import ResNet18Encoder  # noqa: E402

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-torch = pytest.importorskip("torch")
+torch = pytest.importorskip("torch", reason="needs torch (pip install 'trianflow-vo[torch]')")
 
 from trianflow_vo.models.losses import photometric_error, smoothness  # noqa: E402
 from trianflow_vo.models.pwc import PWCConfig, PWCNet, cost_volume, upsample_flow, warp  # noqa: E402

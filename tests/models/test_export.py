@@ -6,9 +6,9 @@ import json
 
 import pytest
 
-torch = pytest.importorskip("torch")
-onnx = pytest.importorskip("onnx")
-pytest.importorskip("onnxruntime")
+torch = pytest.importorskip("torch", reason="needs torch (pip install 'trianflow-vo[torch]')")
+onnx = pytest.importorskip("onnx", reason="needs onnx to export and edit models")
+pytest.importorskip("onnxruntime", reason="needs onnxruntime to run exported models")
 
 from click.testing import CliRunner  # noqa: E402
 
@@ -24,6 +24,7 @@ from trianflow_vo.models.depth_net import DepthNet  # noqa: E402
 from trianflow_vo.models.export import DepthGraph, FlowGraph, parity, random_images  # noqa: E402
 from trianflow_vo.models.pwc import PWCNet  # noqa: E402
 from trianflow_vo.errors import ModelError  # noqa: E402
+from trianflow_vo.nets.onnx_runtime import parse_metadata  # noqa: E402
 
 SIZE = (128, 384)
 
@@ -99,8 +100,13 @@ def test_metadata_and_fixed_shapes(exported):
         for i in model.graph.input:
             assert [dim.dim_value for dim in i.type.tensor_type.shape.dim] == [1, 3, 128, 384]
         assert {n.domain for n in model.graph.node} <= {"", "ai.onnx"}  # no custom operators
+        assert meta["trianflow.resize"] == "area-down-linear-up"  # what the run path does to images
+        info = parse_metadata(meta, d / "out" / f"{kind}.onnx", kind)  # the reader's validation
+        assert info.input_size == (128, 384) and info.resize == "area-down-linear-up"
     flow_meta = {p.key: p.value for p in onnx.load(str(d / "out" / "flow.onnx")).metadata_props}
     assert json.loads(flow_meta["trianflow.config"])["search_range"] == 4
+    depth_meta = {p.key: p.value for p in onnx.load(str(d / "out" / "depth.onnx")).metadata_props}
+    assert json.loads(depth_meta["trianflow.depth_range"]) == [0.1, 100.0]
 
 
 def test_checkpoint_round_trip(tmp_path):
