@@ -96,10 +96,19 @@ def eval_cmd(gt_path, pred_path, align, lengths, json_path, plot_path, max_time_
                 raise click.ClickException(f"{json_path}: cannot write: {exc.strerror or exc}") from None
             click.echo(f"wrote {json_path}")
         if plot_path is not None:
-            from trianflow_vo.eval.plot import plot_evaluation
+            import warnings
+
+            from trianflow_vo.eval.plot import PlotFallbackWarning, plot_evaluation
 
             try:
-                plot_evaluation(result, plot_path)
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always", PlotFallbackWarning)
+                    plot_evaluation(result, plot_path)
             except OSError as exc:
                 raise click.ClickException(f"{plot_path}: cannot write: {exc.strerror or exc}") from None
+            for w in caught:  # one line on stderr each (evo's plotting unavailable: drawn without it)
+                if issubclass(w.category, PlotFallbackWarning):
+                    click.echo(f"warning: {w.message}", err=True)
+                else:
+                    warnings.showwarning(w.message, w.category, w.filename, w.lineno)
             click.echo(f"wrote {plot_path}")

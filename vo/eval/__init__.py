@@ -7,7 +7,12 @@ Public entry points:
 - :func:`align_trajectory` -- the prediction aligned onto the ground truth exactly as
   eval aligns it, for drawing.
 
-Only numpy is imported here; plotting (matplotlib) lives in :mod:`vo.eval.plot`.
+- :func:`load_ground_truth` -- the one ground-truth reader (also used by ``run --gt``).
+
+Trajectories are evo's types and evo does the timestamp association, the Umeyama fit and
+ATE; the KITTI segment metric, frame-index bookkeeping, re-basing, the scale-only mode,
+RPE and the validation of files are ours (see each module for why). evo.core and numpy
+are imported here; plotting (matplotlib, ``evo.tools.plot``) lives in :mod:`vo.eval.plot`.
 """
 
 from trianflow_vo.eval.align import ALIGN_MODES, align_trajectory, umeyama

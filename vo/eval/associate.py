@@ -1,8 +1,16 @@
-"""Pairing predicted and ground-truth poses: by frame index or by timestamp."""
+"""Pairing predicted and ground-truth poses: by frame index or by timestamp.
+
+Timestamps go through evo's nearest-neighbour search
+(:func:`evo.core.sync.matching_time_indices`); on top of it each ground-truth pose is
+used at most once (evo's association may give one ground-truth pose to several
+predictions), closest pair first. Frame indices (strided runs, ``frames.txt``, 13-column
+files) are matched exactly, which evo has no notion of.
+"""
 
 from __future__ import annotations
 
 import numpy as np
+from evo.core.sync import matching_time_indices
 
 DEFAULT_MAX_TIME_DIFF = 0.02  # s, as usual for TUM-format association
 
@@ -11,8 +19,9 @@ def match_frames(pred_frames: np.ndarray, gt_frames: np.ndarray) -> tuple[np.nda
     """Positions of the frames present in both, in increasing frame order.
 
     Args:
-        pred_frames: ``(N,)`` unique integer frame indices of the prediction.
-        gt_frames: ``(M,)`` unique integer frame indices of the ground truth.
+        pred_frames: ``(N,)`` integer frame indices of the prediction (unique; for a
+            repeated index its first position is used).
+        gt_frames: ``(M,)`` integer frame indices of the ground truth (idem).
 
     Returns:
         ``(pred_pos (K,), gt_pos (K,))`` with ``pred_frames[pred_pos] ==
@@ -22,7 +31,7 @@ def match_frames(pred_frames: np.ndarray, gt_frames: np.ndarray) -> tuple[np.nda
     gf = np.asarray(gt_frames)
     if pf.ndim != 1 or gf.ndim != 1:
         raise ValueError(f"frame arrays must be (N,), got {pf.shape} and {gf.shape}")
-    _, pi, gi = np.intersect1d(pf, gf, assume_unique=True, return_indices=True)
+    _, pi, gi = np.intersect1d(pf, gf, assume_unique=False, return_indices=True)
     return pi.astype(np.int64), gi.astype(np.int64)
 
 
@@ -31,8 +40,9 @@ def match_timestamps(
 ) -> tuple[np.ndarray, np.ndarray]:
     """One-to-one pairs of nearest timestamps within ``max_diff`` seconds.
 
-    Each predicted time proposes its nearest ground-truth time; proposals are
-    accepted closest first, each ground-truth time used at most once.
+    Each predicted time proposes its nearest ground-truth time (evo's
+    ``matching_time_indices``); proposals are accepted closest first, each ground-truth
+    time used at most once.
 
     Args:
         pred_times: ``(N,)`` increasing seconds.
@@ -46,23 +56,20 @@ def match_timestamps(
     gt = np.asarray(gt_times, dtype=np.float64)
     if pt.ndim != 1 or gt.ndim != 1:
         raise ValueError(f"timestamp arrays must be (N,), got {pt.shape} and {gt.shape}")
+    empty = np.zeros(0, np.int64), np.zeros(0, np.int64)
     if pt.size == 0 or gt.size == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    right = np.clip(np.searchsorted(gt, pt), 0, gt.size - 1)
-    left = np.clip(right - 1, 0, gt.size - 1)
-    use_left = np.abs(gt[left] - pt) <= np.abs(gt[right] - pt)
-    nearest = np.where(use_left, left, right)
-    diff = np.abs(gt[nearest] - pt)
+        return empty
+    pi, gi = (np.asarray(x, dtype=np.int64) for x in matching_time_indices(pt, gt, max_diff))
+    if pi.size == 0:
+        return empty
+    diff = np.abs(gt[gi] - pt[pi])
     used: set[int] = set()
-    pairs = []
-    for i in np.argsort(diff, kind="stable"):
-        j = int(nearest[i])
-        if diff[i] > max_diff or j in used:
+    keep = []
+    for k in np.argsort(diff, kind="stable"):
+        j = int(gi[k])
+        if j in used:
             continue
         used.add(j)
-        pairs.append((int(i), j))
-    pairs.sort()
-    if not pairs:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    arr = np.asarray(pairs, dtype=np.int64)
-    return arr[:, 0], arr[:, 1]
+        keep.append(int(k))
+    keep = np.sort(np.asarray(keep, dtype=np.int64))
+    return pi[keep], gi[keep]

@@ -1,4 +1,9 @@
-"""The eval protocol end to end: associate, re-base, align, segment metric, ATE, RPE."""
+"""The eval protocol end to end: associate, re-base, align, segment metric, ATE, RPE.
+
+evo does the trajectory types, the timestamp association, the Umeyama fit and its
+application, and ATE (APE); see :mod:`vo.eval.align`, :mod:`vo.eval.associate`,
+:mod:`vo.eval.ate_rpe` and :mod:`vo.eval.segments` for what stays ours and why.
+"""
 
 from __future__ import annotations
 
@@ -7,11 +12,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from evo.core import metrics as _evo_metrics
+from evo.core.trajectory import PosePath3D
 
 from trianflow_vo.errors import InputError
-from trianflow_vo.eval.align import ALIGN_MODES, align_rebased, degenerate_message
+from trianflow_vo.eval.align import ALIGN_MODES, align_paths, as_path, degenerate_message, path_poses
 from trianflow_vo.eval.associate import DEFAULT_MAX_TIME_DIFF, match_frames
-from trianflow_vo.eval.ate_rpe import ate_errors, rmse, rpe_errors
+from trianflow_vo.eval.ate_rpe import rmse, rpe_errors
 from trianflow_vo.eval.loader import MIN_COMMON_FRAMES, Association, associate, load_ground_truth, load_prediction
 from trianflow_vo.eval.segments import (
     DEFAULT_LENGTHS,
@@ -43,6 +50,10 @@ class EvalResult:
     segments: SegmentErrors
     ate: np.ndarray
 
+    def paths(self) -> tuple[PosePath3D, PosePath3D]:
+        """``(gt_rebased, pred_aligned)`` as new evo paths (e.g. for ``evo.tools.plot``)."""
+        return as_path(self.gt_rebased), as_path(self.pred_aligned)
+
 
 def suggest_lengths(path_length: float) -> list[float]:
     """Eight round segment lengths (1, 2 or 5 x 10^k steps) that fit in ``path_length`` m."""
@@ -69,8 +80,8 @@ def evaluate_associated(
     """Protocol steps 2-5 on poses already associated one-to-one (same frames, in order).
 
     Args:
-        pred_poses: ``(K, 4, 4)`` predicted camera-to-world poses.
-        gt_poses: ``(K, 4, 4)`` ground-truth camera-to-world poses.
+        pred_poses: ``(K, 4, 4)`` predicted camera-to-world poses (or an evo path).
+        gt_poses: ``(K, 4, 4)`` ground-truth camera-to-world poses (or an evo path).
         align: ``"7dof"``, ``"6dof"``, ``"scale"`` or ``"none"``.
         lengths: segment lengths (m).
         step: first frames every ``step`` kept frames.
@@ -79,8 +90,8 @@ def evaluate_associated(
     Raises:
         InputError: fewer than 3 frames, or a degenerate alignment.
     """
-    pred = np.asarray(pred_poses, dtype=np.float64)
-    gt = np.asarray(gt_poses, dtype=np.float64)
+    pred = path_poses(pred_poses) if isinstance(pred_poses, PosePath3D) else np.asarray(pred_poses, dtype=np.float64)
+    gt = path_poses(gt_poses) if isinstance(gt_poses, PosePath3D) else np.asarray(gt_poses, dtype=np.float64)
     if pred.ndim != 3 or pred.shape[1:] != (4, 4) or pred.shape != gt.shape:
         raise ValueError(f"pred_poses and gt_poses must both be (K, 4, 4), got {pred.shape} and {gt.shape}")
     if align not in ALIGN_MODES:
@@ -90,14 +101,18 @@ def evaluate_associated(
         raise InputError(f"segment lengths must be positive numbers, got {lengths}")
     if pred.shape[0] < MIN_COMMON_FRAMES:
         raise InputError(f"only {pred.shape[0]} common frame(s); need at least {MIN_COMMON_FRAMES}")
-    pred_aligned, gt_r, (s, R, t), valid = align_rebased(pred, gt, align)
+    est, ref = as_path(pred), as_path(gt)
+    (s, R, t), valid = align_paths(est, ref, align)
     if not valid:
         raise InputError(degenerate_message(align))
+    pred_aligned, gt_r = path_poses(est), path_poses(ref)
     seg = segment_errors(gt_r, pred_aligned, lengths, step)
     seg_summary = summarize_segments(seg, lengths)
-    ate = ate_errors(gt_r, pred_aligned)
+    ape = _evo_metrics.APE(_evo_metrics.PoseRelation.translation_part)
+    ape.process_data((ref, est))
+    ate = np.asarray(ape.error, dtype=np.float64)
     rpe_t, rpe_r = rpe_errors(gt_r, pred_aligned, 1)
-    path_length = float(path_distances(gt_r[:, :3, 3])[-1])
+    path_length = float(path_distances(ref.positions_xyz)[-1])
     note = ""
     if seg_summary["num_segments"] == 0:
         sugg = ",".join(_fmt_len(x) for x in suggest_lengths(path_length))
@@ -109,9 +124,9 @@ def evaluate_associated(
     metrics = {
         "t_err": seg_summary["t_err"],
         "r_err": seg_summary["r_err"],
-        "ate_rmse": rmse(ate),
-        "ate_mean": float(ate.mean()),
-        "ate_max": float(ate.max()),
+        "ate_rmse": float(ape.get_statistic(_evo_metrics.StatisticsType.rmse)),
+        "ate_mean": float(ape.get_statistic(_evo_metrics.StatisticsType.mean)),
+        "ate_max": float(ape.get_statistic(_evo_metrics.StatisticsType.max)),
         "rpe_trans": rmse(rpe_t),
         "rpe_rot": float(np.degrees(rmse(rpe_r))),
         "rpe_trans_mean": float(rpe_t.mean()),
@@ -218,7 +233,7 @@ def evaluate_files(
     pred, desc = load_prediction(pred_path, gt.kind)
     assoc: Association = associate(pred, gt, max_time_diff, desc)
     try:
-        result = evaluate_associated(assoc.pred_poses, assoc.gt_poses, align, lengths, step, assoc.frames)
+        result = evaluate_associated(assoc.pred, assoc.gt, align, lengths, step, assoc.frames)
     except InputError as exc:
         if exc.path is None:
             raise InputError(exc.message, pred.path) from None

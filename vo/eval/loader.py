@@ -3,15 +3,21 @@
 A run folder (written by ``trianflow-vo run``) holds ``poses.txt`` (KITTI, one line per
 processed frame), ``frames.txt`` (the source frame index of each line),
 ``trajectory.tum`` and ``run.json``.
+
+The trajectories travel as evo's types (``TrajectoryFile.traj``, ``Association.pred`` /
+``.gt``); the frame-index bookkeeping (``frames.txt``, 13 columns, line numbers) is ours.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
+from evo.core.trajectory import PosePath3D
 
 from trianflow_vo.errors import InputError
 from trianflow_vo.eval.associate import DEFAULT_MAX_TIME_DIFF, match_frames, match_timestamps
@@ -28,24 +34,43 @@ class Association:
     """Predicted and ground-truth poses of the common frames, in frame (or time) order.
 
     Attributes:
-        pred_poses: ``(K, 4, 4)`` predicted camera-to-world poses.
-        gt_poses: ``(K, 4, 4)`` ground-truth camera-to-world poses.
+        pred: evo path (``PoseTrajectory3D`` for TUM) of the K predicted poses kept.
+        gt: evo path of the K ground-truth poses they are paired with.
         frames: ``(K,)`` int frame indices, or None when matched by timestamp.
         timestamps: ``(K,)`` ground-truth seconds when matched by timestamp, else None.
         matched_by: ``"frame index"``, ``"line number"`` or ``"timestamp"``.
         num_pred: number of predicted poses read.
         num_gt: number of ground-truth poses read.
         pred_source: what was read for the prediction (for the report).
+
+    Properties:
+        pred_poses: ``(K, 4, 4)`` predicted camera-to-world poses.
+        gt_poses: ``(K, 4, 4)`` ground-truth camera-to-world poses.
     """
 
-    pred_poses: np.ndarray
-    gt_poses: np.ndarray
+    pred: PosePath3D
+    gt: PosePath3D
     frames: np.ndarray | None
     timestamps: np.ndarray | None
     matched_by: str
     num_pred: int
     num_gt: int
     pred_source: str
+
+    @cached_property
+    def pred_poses(self) -> np.ndarray:
+        return np.array(self.pred.poses_se3, dtype=np.float64).reshape(-1, 4, 4)
+
+    @cached_property
+    def gt_poses(self) -> np.ndarray:
+        return np.array(self.gt.poses_se3, dtype=np.float64).reshape(-1, 4, 4)
+
+
+def _subset(traj: PosePath3D, ids: np.ndarray) -> PosePath3D:
+    """A copy of an evo path (or trajectory, with its timestamps) reduced to ``ids``."""
+    out = copy.deepcopy(traj)
+    out.reduce_to_ids(np.asarray(ids, dtype=np.int64))
+    return out
 
 
 def find_latest_run(runs_dir: str | Path) -> Path:
@@ -68,16 +93,31 @@ def find_latest_run(runs_dir: str | Path) -> Path:
 
 
 def load_ground_truth(path: str | Path) -> TrajectoryFile:
-    """Ground truth: KITTI (line i = frame i), indexed KITTI, or TUM."""
+    """The one ground-truth reader (``eval`` and ``run --gt``): KITTI, indexed KITTI or TUM.
+
+    Args:
+        path: a KITTI file (12 numbers per line, line i = frame i), an indexed KITTI file
+            (13 numbers, frame index first) or a TUM file.
+
+    Returns:
+        A :class:`~vo.io.trajectory.TrajectoryFile`: ``.poses`` ``(N, 4, 4)`` float64
+        camera-to-world, ``.frames`` ``(N,)`` int64 frame indices (``0..N-1`` for
+        KITTI, the first column for indexed KITTI, rows sorted by it; None for TUM,
+        whose rows are identified by ``.timestamps``), ``.traj`` the evo type
+        (``PosePath3D``, ``PoseTrajectory3D`` for TUM), ``.kind``, ``.lines``.
+
+    Raises:
+        vo.errors.InputError: any bad line, naming the file and line.
+    """
     gt = read_trajectory(path)
     if gt.kind == "kitti":
-        gt = dataclasses.replace(gt, frames=np.arange(gt.poses.shape[0], dtype=np.int64))
+        gt = dataclasses.replace(gt, frames=np.arange(len(gt), dtype=np.int64))
     return gt
 
 
 def _with_frames_file(traj: TrajectoryFile, frames_path: Path) -> TrajectoryFile:
     idx, lines = read_frame_indices(frames_path)
-    n = traj.poses.shape[0]
+    n = len(traj)
     if idx.size != n:
         raise InputError(
             f"{idx.size} frame indices for {n} poses in {traj.path}: the two files must have one line per pose",
@@ -92,7 +132,7 @@ def _with_frames_file(traj: TrajectoryFile, frames_path: Path) -> TrajectoryFile
         frames = idx
     order = np.argsort(frames, kind="stable")
     if traj.kind != "tum":
-        return dataclasses.replace(traj, poses=traj.poses[order], frames=frames[order], lines=traj.lines[order])
+        return dataclasses.replace(traj, traj=_subset(traj.traj, order), frames=frames[order], lines=traj.lines[order])
     return dataclasses.replace(traj, frames=frames)
 
 
@@ -159,14 +199,14 @@ def associate(
     else:
         pred_frames = pred.frames
         if pred_frames is None and pred.kind == "kitti":
-            if pred.poses.shape[0] != gt.poses.shape[0]:
+            if len(pred) != len(gt):
                 raise InputError(
-                    f"{pred.poses.shape[0]} poses but the ground truth {gt.path} has {gt.poses.shape[0]}: "
+                    f"{len(pred)} poses but the ground truth {gt.path} has {len(gt)}: "
                     "cannot tell which frames they are. Put a frames.txt beside it (one source frame index "
                     "per line), or use 13 columns (frame index first)",
                     pred.path,
                 )
-            pred_frames = np.arange(pred.poses.shape[0], dtype=np.int64)
+            pred_frames = np.arange(len(pred), dtype=np.int64)
             matched_by = "line number"
         elif pred_frames is None:  # TUM without frames.txt
             ts = pred.timestamps
@@ -192,13 +232,13 @@ def associate(
             pred.path,
         )
     return Association(
-        pred_poses=pred.poses[pi],
-        gt_poses=gt.poses[gi],
+        pred=_subset(pred.traj, pi),
+        gt=_subset(gt.traj, gi),
         frames=None if matched_by == "timestamp" else pred.frames[pi],
         timestamps=gt.timestamps[gi] if matched_by == "timestamp" else None,
         matched_by=matched_by,
-        num_pred=int(pred.poses.shape[0]),
-        num_gt=int(gt.poses.shape[0]),
+        num_pred=len(pred),
+        num_gt=len(gt),
         pred_source=pred_source,
     )
 

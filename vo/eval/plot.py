@@ -1,13 +1,93 @@
 """PNG figure of an evaluation: top-down trajectories and errors per segment length.
 
-matplotlib is imported inside :func:`plot_evaluation` only (Agg canvas, headless).
+The trajectories are drawn by evo's plotting (:func:`evo.tools.plot.traj`, top view
+``PlotMode.xz``) on a headless Agg figure of our own; the per-length panel is ours (evo
+has no segment metric). matplotlib and evo's plotting are imported on first use only.
+
+Importing ``evo.tools.plot`` has side effects, contained by :func:`evo_plot`: on first
+use evo writes ``~/.evo/settings.json`` and *prints* that to stdout (swallowed here:
+the tool's stdout carries only its report), it selects the matplotlib backend of its
+settings (Agg here, unless pyplot is already in use) and restyles matplotlib with seaborn
+(undone: the import runs inside ``matplotlib.rc_context``). When it cannot be imported
+(read-only or missing HOME, broken settings file, missing package) the figures are drawn
+with matplotlib directly and a :class:`PlotFallbackWarning` says so, once.
 """
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
+
+
+class PlotFallbackWarning(RuntimeWarning):
+    """evo's plotting could not be imported; figures are drawn with matplotlib directly."""
+
+
+_EVO_PLOT = None  # evo.tools.plot once imported, False once the import failed
+
+
+def evo_plot():
+    """``evo.tools.plot``, imported once and quietly; None when it cannot be imported
+    (then a :class:`PlotFallbackWarning` is issued, the first time)."""
+    global _EVO_PLOT
+    if _EVO_PLOT is None:
+        _EVO_PLOT = _import_evo_plot()
+    return _EVO_PLOT or None
+
+
+def _import_evo_plot():
+    import contextlib
+    import io
+    import sys
+
+    try:
+        import matplotlib
+
+        already = "evo.tools.plot" in sys.modules
+        with contextlib.redirect_stdout(io.StringIO()), matplotlib.rc_context():
+            from evo.tools import settings as evo_settings
+
+            if not already:
+                # evo calls matplotlib.use(its setting) on import: keep the backend in use, or Agg
+                backend = matplotlib.get_backend() if "matplotlib.pyplot" in sys.modules else "agg"
+                evo_settings.SETTINGS.plot_backend = backend
+            from evo.tools import plot as evo_plot_module
+        return evo_plot_module
+    except Exception as exc:  # noqa: BLE001 - any failure of evo's import means: draw without it
+        warnings.warn(
+            f"evo's plotting is unavailable ({type(exc).__name__}: {exc}); drawing the trajectory figures "
+            "with matplotlib directly",
+            PlotFallbackWarning,
+            stacklevel=3,
+        )
+        return False
+
+
+def draw_top_view(ax, positions: np.ndarray, style: str = "-", color=None, label: str = "", **line_kw):
+    """Draw ``(N, 3)`` positions seen from above (x right, z up the page) into ``ax``.
+
+    Through evo's ``plot.traj`` (``PlotMode.xz``) when evo's plotting is available, else
+    with ``ax.plot``; ``line_kw`` (``linewidth``, ``zorder``, ...) is then set on the line.
+
+    Returns:
+        The matplotlib ``Line2D`` drawn.
+    """
+    p = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    evo = evo_plot()
+    if evo is not None and p.shape[0] > 0:
+        from evo.core.trajectory import PosePath3D
+
+        path = PosePath3D(positions_xyz=p, orientations_quat_wxyz=np.tile([1.0, 0.0, 0.0, 0.0], (p.shape[0], 1)))
+        first = len(ax.lines)
+        evo.traj(ax, evo.PlotMode.xz, path, style=style, color=color, label=label)
+        line = ax.lines[first]
+    else:
+        (line,) = ax.plot(p[:, 0], p[:, 2], style, color=color, label=label)
+    if line_kw:
+        line.set(**line_kw)
+    return line
 
 
 def plot_evaluation(result, path: str | Path, title: str | None = None) -> Path:
@@ -31,8 +111,8 @@ def plot_evaluation(result, path: str | Path, title: str | None = None) -> Path:
     fig = Figure(figsize=(12, 5), dpi=100)
     FigureCanvasAgg(fig)
     ax_traj = fig.add_subplot(1, 2, 1)
-    ax_traj.plot(gt[:, 0], gt[:, 2], "-", color="black", lw=1.5, label="ground truth")
-    ax_traj.plot(pr[:, 0], pr[:, 2], "-", color="tab:red", lw=1.2, label=f"prediction ({m['align']} aligned)")
+    draw_top_view(ax_traj, gt, "-", color="black", label="ground truth", linewidth=1.5)
+    draw_top_view(ax_traj, pr, "-", color="tab:red", label=f"prediction ({m['align']} aligned)", linewidth=1.2)
     ax_traj.plot(gt[0, 0], gt[0, 2], "o", color="black", ms=5, label="start")
     ax_traj.set_xlabel("x (m)")
     ax_traj.set_ylabel("z (m)")

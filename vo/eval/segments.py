@@ -5,6 +5,10 @@ the first frame whose cumulative ground-truth path length exceeds the first fram
 more than L. The error of the segment is ``E = inv(inv(P_a) P_b) @ inv(G_a) G_b`` (P
 predicted, G ground truth); its translation norm divided by L and its rotation angle
 divided by L are averaged over all segments.
+
+evo has no such metric (its RPE with a delta in metres pairs poses by distance along
+either trajectory and does not divide by a nominal length), so it is implemented here;
+the cumulative distances are evo's.
 """
 
 from __future__ import annotations
@@ -12,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from evo.core.geometry import accumulated_distances
 
 DEFAULT_LENGTHS = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)
 DEFAULT_STEP = 10
@@ -40,12 +45,12 @@ class SegmentErrors:
 
 
 def path_distances(positions: np.ndarray) -> np.ndarray:
-    """``(N,)`` cumulative path length along ``(N, 3)`` positions (0 at the first)."""
+    """``(N,)`` cumulative path length along ``(N, 3)`` positions (0 at the first): evo's
+    ``accumulated_distances`` (what ``PosePath3D.distances`` gives)."""
     p = np.asarray(positions, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
         raise ValueError(f"positions must be (N, 3), got {p.shape}")
-    steps = np.linalg.norm(np.diff(p, axis=0), axis=1)
-    return np.concatenate([[0.0], np.cumsum(steps)])
+    return np.asarray(accumulated_distances(p), dtype=np.float64)
 
 
 def rotation_angle(R: np.ndarray) -> np.ndarray:

@@ -1,16 +1,32 @@
-"""Trajectory files: KITTI (12 numbers per line), TUM (t tx ty tz qx qy qz qw).
+"""Trajectory files: KITTI (12 numbers per line), indexed KITTI (13), TUM (t tx ty tz qx qy qz qw).
 
-Writers here are used by the run writer; readers are used by ``eval``.
+Readers here validate every line (errors name the file and line) and hand the poses on as
+evo's trajectory types (:class:`evo.core.trajectory.PosePath3D`, and
+:class:`~evo.core.trajectory.PoseTrajectory3D` for TUM); the line formatters are used by
+the run writer, which streams one line per frame.
+
+evo's own file readers (``evo.tools.file_interface``) are not used: they split on single
+spaces only, cannot skip blank lines, accept no commas and no 13-column files, and report
+a bad file without its line. evo's whole-file writers do not fit a run that writes one
+line per processed frame (a crashed run keeps what it wrote). The quaternion conversions
+are evo's (``evo.core.transformations``); evo's ``trajectory`` module (scipy) is imported
+only when a file is read, so writing a run stays light.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+from evo.core import transformations as _tr
 
 from trianflow_vo.errors import InputError
+
+if TYPE_CHECKING:  # evo.core.trajectory pulls in scipy: imported when a file is read
+    from evo.core.trajectory import PosePath3D, PoseTrajectory3D
 
 
 def format_kitti_line(T_world_cam: np.ndarray) -> str:
@@ -20,26 +36,15 @@ def format_kitti_line(T_world_cam: np.ndarray) -> str:
 
 
 def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion ``(4,)`` as ``(qx, qy, qz, qw)`` with ``qw >= 0`` of a ``(3, 3)`` rotation."""
-    R = np.asarray(R, dtype=np.float64)
-    m = R
-    tr = m[0, 0] + m[1, 1] + m[2, 2]
-    if tr > 0:
-        s = np.sqrt(tr + 1.0) * 2
-        q = np.array([(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s])
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
-        q = np.array([0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s])
-    elif m[1, 1] > m[2, 2]:
-        s = np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
-        q = np.array([(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s])
-    else:
-        s = np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
-        q = np.array([(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s])
-    q /= np.linalg.norm(q)
-    if q[3] < 0:
-        q = -q
-    return q
+    """Unit quaternion ``(4,)`` as ``(qx, qy, qz, qw)`` with ``qw >= 0`` of a ``(3, 3)`` rotation.
+
+    evo's ``quaternion_from_matrix`` (the eigenvector method: stable for half turns and
+    for slightly non-orthonormal input), reordered from evo's ``(w, x, y, z)``.
+    """
+    R = np.ascontiguousarray(R, dtype=np.float64)  # evo asks numpy for no copy
+    w, x, y, z = _tr.quaternion_from_matrix(R)
+    q = np.array([x, y, z, w])
+    return q / np.linalg.norm(q)
 
 
 def format_tum_line(timestamp: float, T_world_cam: np.ndarray) -> str:
@@ -65,35 +70,46 @@ class TrajectoryFile:
         path: the file it came from.
         kind: ``"kitti"`` (12 numbers, line i = frame i), ``"kitti-indexed"``
             (13 numbers, frame index first) or ``"tum"`` (timestamp tx ty tz qx qy qz qw).
-        poses: ``(N, 4, 4)`` camera-to-world poses ``T_world_cam``.
+        traj: the poses as evo's type: a :class:`~evo.core.trajectory.PoseTrajectory3D`
+            for TUM (with its timestamps), else a :class:`~evo.core.trajectory.PosePath3D`.
+            Treat it as read-only (``copy.deepcopy`` it before ``align``/``transform``):
+            :attr:`poses` is cached from it.
         frames: ``(N,)`` int64 frame indices, or None when the file does not say
             (plain KITTI without ``frames.txt``, TUM).
-        timestamps: ``(N,)`` float64 seconds (TUM), else None.
         lines: ``(N,)`` 1-based line numbers of the poses in ``path`` (for messages).
+
+    Properties:
+        poses: ``(N, 4, 4)`` float64 camera-to-world poses ``T_world_cam`` (from ``traj``).
+        timestamps: ``(N,)`` float64 seconds (TUM), else None.
     """
 
     path: str
     kind: str
-    poses: np.ndarray
+    traj: PosePath3D = field(repr=False)
     frames: np.ndarray | None
-    timestamps: np.ndarray | None
     lines: np.ndarray
+
+    @cached_property
+    def poses(self) -> np.ndarray:
+        return np.array(self.traj.poses_se3, dtype=np.float64).reshape(-1, 4, 4)
+
+    @property
+    def timestamps(self) -> np.ndarray | None:
+        ts = getattr(self.traj, "timestamps", None)
+        return None if ts is None else np.asarray(ts, dtype=np.float64)
+
+    def __len__(self) -> int:
+        return int(self.traj.num_poses)
 
 
 def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
     """``(3, 3)`` rotation of a unit quaternion ``(4,)`` given as ``(qx, qy, qz, qw)``.
 
-    The quaternion is normalised first; the caller must reject zero-norm input.
+    evo's ``quaternion_matrix`` (which normalises first); the caller must reject
+    zero-norm input.
     """
-    q = np.asarray(q, dtype=np.float64)
-    x, y, z, w = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    x, y, z, w = np.asarray(q, dtype=np.float64)
+    return _tr.quaternion_matrix([w, x, y, z])[:3, :3]
 
 
 def _numeric_rows(path: Path, what: str) -> tuple[list[list[float]], list[int]]:
@@ -157,9 +173,16 @@ def read_trajectory(path: str | Path) -> TrajectoryFile:
     The format is recognised by the column count. Blank lines and lines starting with
     ``#`` are skipped. Every error names the file and line
     (:class:`vo.errors.InputError`): wrong or inconsistent column counts, non-numeric
-    values, NaN/inf, a zero quaternion, a non-integer or repeated frame index.
-    Indexed KITTI and TUM rows are sorted by frame index / timestamp.
+    values, NaN/inf, a zero quaternion, a 3x3 block that is not a rotation, a
+    non-integer or repeated frame index, a repeated timestamp. Indexed KITTI and TUM
+    rows are sorted by frame index / timestamp.
+
+    Returns:
+        A :class:`TrajectoryFile` whose ``traj`` is evo's ``PosePath3D`` (KITTI) or
+        ``PoseTrajectory3D`` (TUM).
     """
+    from evo.core.trajectory import PosePath3D, PoseTrajectory3D
+
     path = Path(path)
     rows, lines = _numeric_rows(path, "trajectory")
     if not rows:
@@ -170,9 +193,10 @@ def read_trajectory(path: str | Path) -> TrajectoryFile:
     n = data.shape[0]
     frames = None
     timestamps = None
-    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses = None  # (N, 4, 4) for the KITTI kinds; TUM rotations come from evo's quaternion conversion
     if ncols == KITTI_COLUMNS:
         kind = "kitti"
+        poses = np.tile(np.eye(4), (n, 1, 1))
         poses[:, :3, :4] = data.reshape(n, 3, 4)
     elif ncols == INDEXED_KITTI_COLUMNS:
         kind = "kitti-indexed"
@@ -186,16 +210,14 @@ def read_trajectory(path: str | Path) -> TrajectoryFile:
                 lines[i],
             )
         frames = idx.astype(np.int64)
+        poses = np.tile(np.eye(4), (n, 1, 1))
         poses[:, :3, :4] = data[:, 1:].reshape(n, 3, 4)
     elif ncols == TUM_COLUMNS:
         kind = "tum"
         timestamps = data[:, 0].copy()
-        for i in range(n):
-            q = data[i, 4:8]
-            if np.linalg.norm(q) < 1e-9:
-                raise InputError("zero quaternion", path, lines[i])
-            poses[i, :3, :3] = quaternion_to_rotation(q)
-        poses[:, :3, 3] = data[:, 1:4]
+        zero = np.nonzero(np.linalg.norm(data[:, 4:8], axis=1) < 1e-9)[0]
+        if zero.size:
+            raise InputError("zero quaternion", path, lines[int(zero[0])])
     else:
         raise InputError(
             f"{ncols} columns per line: expected 12 (KITTI), 13 (frame index + KITTI) "
@@ -203,7 +225,8 @@ def read_trajectory(path: str | Path) -> TrajectoryFile:
             path,
             lines[0],
         )
-    _check_rotations(poses, path, line_nos)
+    if poses is not None:
+        _check_rotations(poses, path, line_nos)
     key = frames if frames is not None else timestamps
     if key is not None:
         order = np.argsort(key, kind="stable")
@@ -213,12 +236,18 @@ def read_trajectory(path: str | Path) -> TrajectoryFile:
             i = int(order[dup[0] + 1])
             what = "frame index" if frames is not None else "timestamp"
             raise InputError(f"repeated {what} {key_sorted[dup[0]]!r}", path, lines[i])
-        poses, line_nos = poses[order], line_nos[order]
+        data, line_nos = data[order], line_nos[order]
         if frames is not None:
-            frames = frames[order]
-        else:
-            timestamps = timestamps[order]
-    return TrajectoryFile(str(path), kind, poses, frames, timestamps, line_nos)
+            poses, frames = poses[order], frames[order]
+    if kind == "tum":
+        # evo's type turns the unit quaternions (w first for evo) into rotation matrices
+        traj = PoseTrajectory3D(
+            positions_xyz=data[:, 1:4], orientations_quat_wxyz=data[:, [7, 4, 5, 6]], timestamps=data[:, 0],
+            name=str(path),
+        )
+    else:
+        traj = PosePath3D(poses_se3=list(poses), name=str(path))
+    return TrajectoryFile(str(path), kind, traj, frames, line_nos)
 
 
 def read_frame_indices(path: str | Path) -> tuple[np.ndarray, np.ndarray]:

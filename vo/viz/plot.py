@@ -1,8 +1,11 @@
 """Top-down trajectory plot (``trajectory.png``) and the ground-truth alignment it shows.
 
-The alignment follows ``eval``'s default: both trajectories are re-based to their
-first common frame, then a 7-DoF (Sim(3)) Umeyama fit maps the estimated
-positions onto the ground-truth positions of the common frames.
+The alignment is ``eval``'s, called here (one implementation): frames matched by index
+(:func:`vo.eval.associate.match_frames`), both trajectories re-based to their first
+common frame and the estimate 7-DoF (Sim(3)) aligned onto the ground truth
+(:func:`vo.eval.align.align_paths`, evo's Umeyama). The paths are drawn by evo's
+plotting (see :mod:`vo.eval.plot`), imported on first use; importing this module does
+not import matplotlib.
 """
 
 from __future__ import annotations
@@ -11,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from trianflow_vo.eval.align import estimate_alignment
+from trianflow_vo.eval.align import align_paths, as_path
+from trianflow_vo.eval.associate import match_frames
 
 
 def _check_poses(T: np.ndarray, name: str) -> np.ndarray:
@@ -32,11 +36,9 @@ def _frames_or_range(frames: np.ndarray | None, n: int, name: str) -> np.ndarray
 
 def common_indices(est_frames: np.ndarray, gt_frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Row indices ``(i_est (K,), i_gt (K,))`` of the frame indices present in both
-    ``est_frames (N,)`` and ``gt_frames (M,)``, in increasing frame order."""
-    est_frames = np.asarray(est_frames).reshape(-1)
-    gt_frames = np.asarray(gt_frames).reshape(-1)
-    _, i_est, i_gt = np.intersect1d(est_frames, gt_frames, assume_unique=False, return_indices=True)
-    return i_est, i_gt
+    ``est_frames (N,)`` and ``gt_frames (M,)``, in increasing frame order (eval's
+    :func:`~vo.eval.associate.match_frames`)."""
+    return match_frames(np.asarray(est_frames).reshape(-1), np.asarray(gt_frames).reshape(-1))
 
 
 def align_estimate_to_gt(
@@ -68,11 +70,10 @@ def align_estimate_to_gt(
     n = int(i_est.shape[0])
     if n == 0:
         return (np.eye(4), np.eye(4), 0), False
-    base_est = np.linalg.inv(T[i_est[0]])
+    est, ref = as_path(T[i_est]), as_path(G[i_gt])
+    base_est = np.linalg.inv(T[i_est[0]])  # the re-basing eval applies (align_paths re-bases the same way)
     base_gt = np.linalg.inv(G[i_gt[0]])
-    p_est = (base_est @ T[i_est])[:, :3, 3]
-    p_gt = (base_gt @ G[i_gt])[:, :3, 3]
-    (s, R, t), valid = estimate_alignment(p_est, p_gt, "7dof")  # eval's check of degenerate motion
+    (s, R, t), valid = align_paths(est, ref, "7dof")  # eval's alignment, and its check of degenerate motion
     S = np.eye(4)
     S[:3, :3] = s * R
     S[:3, 3] = t
@@ -98,6 +99,9 @@ def plot_trajectory(
     truth both are drawn in the ground truth's frame re-based to the first common
     frame, the estimate Sim(3)-aligned onto it (see ``align_estimate_to_gt``), and
     the legend gives the RMSE of the aligned positions over the common frames.
+    The paths are drawn by evo's ``plot.traj`` on a headless Agg figure (matplotlib
+    directly, with a :class:`vo.eval.plot.PlotFallbackWarning`, when evo's plotting
+    cannot be imported); nothing is printed and no pyplot figure is left open.
 
     Args:
         T_world_cam: ``(N, 4, 4)`` estimated camera-to-world poses (N >= 1).
@@ -118,6 +122,8 @@ def plot_trajectory(
 
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+
+    from trianflow_vo.eval.plot import draw_top_view
 
     fig = Figure(figsize=(7, 7), dpi=100)
     FigureCanvasAgg(fig)
@@ -140,11 +146,11 @@ def plot_trajectory(
                 est = _apply(np.linalg.inv(T[i_est[0]]), est)
             est_label = "estimate (not aligned)"
             note = f"ground truth not aligned: needs >= 3 common frames with motion ({n_common} common)"
-        ax.plot(gt[:, 0], gt[:, 2], color="tab:orange", linestyle="--", linewidth=1.5, label="ground truth",
-                zorder=3)  # dashed, on top: the estimate stays visible underneath
+        draw_top_view(ax, gt, "--", color="tab:orange", label="ground truth", linewidth=1.5,
+                      zorder=3)  # dashed, on top: the estimate stays visible underneath
     else:
         est_label = "estimate"
-    ax.plot(est[:, 0], est[:, 2], color="tab:blue", linewidth=1.8, label=est_label)
+    draw_top_view(ax, est, "-", color="tab:blue", label=est_label, linewidth=1.8)
     ax.plot(est[:1, 0], est[:1, 2], "o", color="tab:green", markersize=6, label="start")
     ax.plot(est[-1:, 0], est[-1:, 2], "s", color="black", markersize=5, label="end")
     ax.set_xlabel("x (right)")

@@ -1,4 +1,5 @@
-"""trajectory.png: alignment to ground truth, headless drawing, input checks."""
+"""trajectory.png: alignment to ground truth (eval's, through evo), drawing through evo's
+plotting (headless, quiet) or matplotlib when evo's plotting is unavailable, input checks."""
 
 from __future__ import annotations
 
@@ -10,12 +11,22 @@ import cv2
 import numpy as np
 import pytest
 
+from trianflow_vo.eval.align import align_rebased
 from trianflow_vo.viz.plot import align_estimate_to_gt, common_indices, plot_trajectory
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 BLUE_BGR = (180, 119, 31)  # matplotlib tab:blue, the estimate
 ORANGE_BGR = (14, 127, 255)  # matplotlib tab:orange, the ground truth
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _evo_settings_out_of_home(tmp_path_factory):
+    """evo writes ~/.evo when its plotting is first imported: not into the real HOME."""
+    mp = pytest.MonkeyPatch()
+    mp.setenv("HOME", str(tmp_path_factory.mktemp("home")))
+    yield
+    mp.undo()
 
 
 def rot_y(a):
@@ -69,6 +80,33 @@ def test_alignment_recovers_a_known_similarity():
     assert np.linalg.det(S[:3, :3]) == pytest.approx(27.0)  # scale 3 in each direction
 
 
+def test_alignment_is_evals():
+    """One implementation: the similarity maps the estimate exactly where eval's 7dof
+    alignment puts it, and the ground truth where eval re-bases it."""
+    gt = curve(40, start_yaw=-0.2, start=(3, 1, 2))
+    rng = np.random.default_rng(0)
+    est = similar(gt, 0.4, rot_y(0.7), np.array([2.0, 0.0, -1.0]))
+    est[:, :3, 3] += rng.normal(0, 0.05, (40, 3))
+    frames, gt_frames = np.arange(5, 40), np.arange(40)
+    (S, B, n), valid = align_estimate_to_gt(est[5:], gt, frames, gt_frames)
+    assert valid and n == 35
+    pred_aligned, gt_rebased, _, ok = align_rebased(est[5:], gt[5:], "7dof")
+    assert ok
+    np.testing.assert_allclose(est[5:, :3, 3] @ S[:3, :3].T + S[:3, 3], pred_aligned[:, :3, 3], atol=1e-9)
+    np.testing.assert_allclose(gt[5:, :3, 3] @ B[:3, :3].T + B[:3, 3], gt_rebased[:, :3, 3], atol=1e-9)
+
+
+def test_alignment_of_a_straight_drive():
+    """Positions on a line: evo's Umeyama refuses them, eval's alignment solves them."""
+    gt = np.tile(np.eye(4), (10, 1, 1))
+    gt[:, 2, 3] = np.arange(10.0)
+    est = gt.copy()
+    est[:, 2, 3] *= 0.5
+    (S, B, n), valid = align_estimate_to_gt(est, gt)
+    assert valid and n == 10
+    np.testing.assert_allclose(est[:, :3, 3] @ S[:3, :3].T + S[:3, 3], gt[:, :3, 3], atol=1e-12)
+
+
 def test_alignment_invalid_cases():
     est = curve(5)
     (_, _, n), valid = align_estimate_to_gt(est, curve(5), np.arange(5), np.arange(10, 15))
@@ -117,16 +155,58 @@ def test_plot_input_checks(tmp_path):
     assert not (tmp_path / "a.png").exists()
 
 
-def test_plot_is_headless_and_leaves_no_pyplot_state(tmp_path):
+def test_plot_is_headless_quiet_and_leaves_no_pyplot_state(tmp_path):
+    """In a fresh process without a display and a fresh HOME: the figure is drawn through
+    evo's plotting (which imports pyplot and, on first use, writes ~/.evo and prints so),
+    yet nothing reaches stdout, the backend is Agg, no pyplot figure is left open and
+    matplotlib's global style is untouched."""
     code = (
-        "import sys, numpy as np\n"
+        "import sys, numpy as np, matplotlib\n"
+        "style = matplotlib.rcParams.copy()  # copy() does not resolve the backend\n"
         "from trianflow_vo.viz.plot import plot_trajectory\n"
+        "assert 'matplotlib.pyplot' not in sys.modules\n"
         "T = np.stack([np.eye(4)] * 3); T[:, 2, 3] = [0, 1, 2]\n"
         f"plot_trajectory(T, {str(tmp_path / 'h.png')!r})\n"
-        "assert 'matplotlib.pyplot' not in sys.modules\n"
+        "import matplotlib.pyplot as plt\n"
+        "assert 'evo.tools.plot' in sys.modules\n"
+        "assert plt.get_fignums() == [], plt.get_fignums()\n"
+        "assert matplotlib.get_backend().lower() == 'agg', matplotlib.get_backend()\n"
+        "changed = [k for k in style if k != 'backend' and matplotlib.rcParams[k] != style[k]]\n"
+        "assert not changed, changed\n"
         "print('ok')\n"
     )
+    home = tmp_path / "home"
+    home.mkdir()
     env = {k: v for k, v in __import__("os").environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY", "MPLBACKEND")}
-    res = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
-    assert res.returncode == 0 and "ok" in res.stdout, res.stderr
+    env["HOME"] = str(home)
+    res = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0 and res.stdout == "ok\n", res.stdout + res.stderr
+    assert res.stderr == ""
+    assert (home / ".evo" / "settings.json").is_file()
     assert (tmp_path / "h.png").stat().st_size > 1000
+
+
+def test_fallback_without_evo_plotting_draws_the_same_and_warns(tmp_path, monkeypatch):
+    """When evo's plotting cannot be imported, one PlotFallbackWarning and the same figure
+    drawn with matplotlib directly (same colours, same size)."""
+    import evo.tools
+
+    import trianflow_vo.eval.plot as eval_plot
+
+    monkeypatch.setattr(eval_plot, "_EVO_PLOT", None)
+    monkeypatch.setitem(sys.modules, "evo.tools.plot", None)  # import fails
+    monkeypatch.delattr(evo.tools, "plot", raising=False)
+    gt = curve(30, start_yaw=0.0, start=(0, 0, 0))
+    est = similar(gt, 0.2, rot_y(0.9), np.array([3.0, 0, 3.0]))
+    est[:, 0, 3] += 0.05 * np.arange(30) ** 1.5
+    with pytest.warns(eval_plot.PlotFallbackWarning, match="evo's plotting is unavailable"):
+        out = plot_trajectory(est, tmp_path / "t.png", gt_T_world_cam=gt)
+    assert eval_plot._EVO_PLOT is False
+    img = cv2.imread(str(out))
+    assert img.shape == (700, 700, 3)
+    assert count_colour(img, BLUE_BGR) > 300 and count_colour(img, ORANGE_BGR) > 100
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # warned once, not on every figure
+        plot_trajectory(est, tmp_path / "t2.png")
