@@ -17,6 +17,7 @@ _COMMANDS = {
     "eval": ("trianflow_vo.cli.eval_cmd", "eval_cmd", "Evaluate a trajectory against ground truth (KITTI t_err/r_err, ATE, RPE)."),
     "export": ("trianflow_vo.cli.export_cmd", "export", "Export flow and depth networks to ONNX."),
     "view": ("trianflow_vo.cli.view_cmd", "view", "Open a Rerun recording (.rrd) in the viewer."),
+    "predict": ("trianflow_vo.cli.predict_cmd", "predict", "Predict depth and/or optical flow of images with exported networks."),
 }
 
 
