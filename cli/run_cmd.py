@@ -66,6 +66,7 @@ SHORTCUTS = {
     "stride": "input.stride", "start": "input.start", "end": "input.end", "size": "input.size",
     "intrinsics": "input.intrinsics", "calib": "input.calib",
     "flow_model": "flow.model", "dis_preset": "flow.dis_preset", "depth_model": "depth.model",
+    "scale_from": "scale.source",
     "n_samples": "sampling.n_samples", "seed": "sampling.seed", "min_parallax_px": "keyframes.min_parallax_px",
     "threads": "runtime.threads", "gt": "output.gt", "rerun_path": "output.rerun", "rerun_spawn": "output.rerun_spawn",
 }
@@ -129,6 +130,12 @@ def default_out_dir(seq: Path) -> Path:
               help="ONNX flow network (from `trianflow-vo export`) [flow.model]; default OpenCV DIS flow.")
 @click.option("--depth-model", type=click.Path(path_type=Path), default=None,
               help="ONNX depth network [depth.model]; default: depth carried from earlier triangulation.")
+@click.option("--scale-from", "scale_from", type=click.Choice(["auto", "triangulation", "keyframe-depth", "depth"]),
+              default=None,
+              help="Where each step's length comes from [scale.source; auto]: triangulation (depth carried from "
+                   "earlier triangulation, no network needed), keyframe-depth (the depth network's prediction of "
+                   "the keyframe), depth (the authors' recipe: every pair fitted to the network depth of the new "
+                   "frame, PnP on small flow); auto = keyframe-depth with --depth-model, else triangulation.")
 @click.option("--threads", type=click.IntRange(1, 64), default=None,
               help="CPU threads for OpenCV and onnxruntime [runtime.threads; 2].")
 @click.option("--dis-preset", type=click.Choice(["fast", "medium", "fine"]), default=None,

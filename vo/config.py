@@ -197,8 +197,22 @@ class ScaleConfig(_Section):
     """Scale of the two-view translation against the keyframe depth."""
 
     NAME = "scale"
+    source: Literal["auto", "triangulation", "keyframe-depth", "depth"] = _opt(
+        "auto", "where the step length comes from: triangulation = depth carried from earlier triangulation; "
+                "keyframe-depth = the depth network's prediction of the keyframe, frame to keyframe; depth = the "
+                "authors' recipe, every pair fitted to the network depth of the new frame; auto = keyframe-depth "
+                "with depth.model, else triangulation")
     min_points: int = _opt(20, "fewest triangulated points with reference depth to align the scale",
                            range=_Range(3))
+    depth_min_flow_px: float = _opt(5.0, "scale.source=depth: mean flow in pixels under which PnP on the "
+                                         "previous frame's depth is used instead of two-view", range=_Range(0.0))
+    depth_fit_threshold: float = _opt(1.0, "scale.source=depth: RANSAC residual (depth units) of the scale fit "
+                                           "of network depth to triangulated depth", range=_Range(0.0, lo_open=True))
+    depth_fit_trials: int = _opt(100, "scale.source=depth: RANSAC trials of the scale fit", range=_Range(1))
+    depth_fit_min_points: int = _opt(100, "scale.source=depth: fewest points for the scale fit (else PnP)",
+                                     range=_Range(3))
+    depth_max: float = _opt(50.0, "scale.source=depth: PnP uses the previous frame's depth below this",
+                            range=_Range(0.0, lo_open=True))
     pnp_check_ratio: float = _opt(1.5, "PnP replaces the two-view step when their scales differ by more than "
                                        "this factor; 0 = no check", check=_ratio_or_off, rule="0 (off) or > 1")
 
@@ -634,3 +648,14 @@ def _keys_markdown() -> str:
 
     rows = [f"| `{k}` | {cell(t)} | `{_yaml_value(d)}` | {cell(h)} |" for k, t, d, h in config_keys()]
     return "\n".join(["| key | type | default | help |", "|---|---|---|---|", *rows]) + "\n"
+
+
+def resolve_scale_source(config: Config) -> str:
+    """``scale.source`` with ``auto`` resolved: ``keyframe-depth`` when a depth network is given, else
+    ``triangulation``. Raises ConfigError when a depth-based source has no ``depth.model``."""
+    src = config.scale.source
+    if src == "auto":
+        return "keyframe-depth" if config.depth.model is not None else "triangulation"
+    if src in ("keyframe-depth", "depth") and config.depth.model is None:
+        raise ConfigError(f"scale.source: {src!r} needs a depth network (depth.model, --depth-model)")
+    return src

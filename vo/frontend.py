@@ -29,7 +29,7 @@ from trianflow_vo.geometry.epipolar import epipolar_distance_map, inlier_score
 from trianflow_vo.geometry.pnp import solve_pnp
 from trianflow_vo.geometry.relative_pose import estimate_relative_pose
 from trianflow_vo.geometry.rotation import fit_rotation
-from trianflow_vo.geometry.scale import align_scale
+from trianflow_vo.geometry.scale import align_scale, fit_scale_ransac
 from trianflow_vo.geometry.se3 import invert_T, make_T
 from trianflow_vo.geometry.triangulation import triangulate_midpoint
 from trianflow_vo.keyframe import Keyframe, TrackIds, Tracks
@@ -237,6 +237,46 @@ class FrontEnd:
             tm.add("pnp", t0)
         return sol
 
+    def _relative_pose(self, m: Matches, tm: StageTimer):
+        """``(RelativePose, n_inliers)`` of the matches, or ``(None, n)`` when degenerate."""
+        g = self.cfg.geometry
+        t0 = time.perf_counter()
+        rel, ok = estimate_relative_pose(m.pts_ref, m.pts_cur, self.K, threshold_px=g.ransac_threshold_px,
+                                         method=g.ransac_method, refine=g.refine, inlier_px=g.epi_inlier_px,
+                                         rng=self.rng, ransac_subset=g.ransac_subset)
+        tm.add("pose", t0)
+        n_in = 0 if rel is None else int(rel.inliers.sum())
+        return (rel if ok and n_in >= g.min_inliers else None), n_in
+
+    def _triangulate(self, rel, m: Matches, ref: ReferenceDepth | None, tm: StageTimer):
+        """Re-draw matches from ``M_r * M_s * M_o`` (plus every pixel that carries depth) and
+        triangulate them: ``(idx2 (N,), q1 (N, 2), q2 (N, 2), X (N, 3) keyframe camera, valid, angle)``."""
+        g = self.cfg.geometry
+        t0 = time.perf_counter()
+        score2 = inlier_score(epipolar_distance_map(rel.F, m.fw), g.epi_inlier_px) * m.score
+        anchors = None
+        if ref is not None and ref.sparse:
+            anchors = self._capped(np.flatnonzero((ref.depth.ravel() > 0) & (score2.ravel() > 0)))
+        idx2 = self.draw(score2, self.cfg.sampling.n_samples, anchors)
+        t0 = tm.add("redraw", t0)
+        q1, q2 = self.pixels(idx2, m.fw)
+        X, valid, angle = triangulate_midpoint(q1, q2, self.K, rel.R, rel.t, min_angle=g.min_angle_rad)
+        tm.add("triangulate", t0)
+        return idx2, q1, q2, X, valid, angle
+
+    def _solution(self, keyframe: Keyframe, branch: Branch, how: str, R: np.ndarray, t_s: np.ndarray,
+                  X_s: np.ndarray, idx: np.ndarray, q1: np.ndarray, q2: np.ndarray, weight: np.ndarray,
+                  stats: dict, ref: ReferenceDepth | None) -> Solution:
+        """A scaled step ``X_cur = R X_ref + t_s`` from the keyframe; the frame becomes the keyframe,
+        with the triangulated points ``X_s`` ``(N, 3)`` (keyframe camera, at pixels ``idx``) as its tracks."""
+        T_ref_cam = invert_T(make_T(R, t_s))
+        tracks = self._new_tracks(ref, idx, X_s @ R.T + t_s, weight)
+        Tw = keyframe.T_world_cam
+        gray = keyframe.image[np.rint(q1[:, 1]).astype(int), np.rint(q1[:, 0]).astype(int)]
+        return Solution(branch, how, Tw @ T_ref_cam, T_ref_cam, stats, pts_ref=q1, pts_cur=q2,
+                        points_world=X_s @ Tw[:3, :3].T + Tw[:3, 3], point_colors=gray[:, ::-1].copy(),
+                        tracks=tracks, step_norm=float(np.linalg.norm(t_s)))
+
     def two_view(self, keyframe: Keyframe, ref: ReferenceDepth | None, m: Matches, R_rot: np.ndarray,
                  last_step_norm: float | None, tm: StageTimer) -> Solution:
         """Relative pose from the matches, mid-point triangulation, scale from the keyframe depth.
@@ -246,29 +286,16 @@ class FrontEnd:
         :class:`~trianflow_vo.keyframe.Tracks` (the triangulated points, with the
         ids of the tracks they continue)."""
         g, K = self.cfg.geometry, self.K
-        t0 = time.perf_counter()
-        rel, ok = estimate_relative_pose(m.pts_ref, m.pts_cur, K, threshold_px=g.ransac_threshold_px,
-                                         method=g.ransac_method, refine=g.refine, inlier_px=g.epi_inlier_px,
-                                         rng=self.rng, ransac_subset=g.ransac_subset)
-        t0 = tm.add("pose", t0)
-        if not ok or rel.inliers.sum() < g.min_inliers:
-            n_in = 0 if rel is None else int(rel.inliers.sum())
+        rel, n_in = self._relative_pose(m, tm)
+        if rel is None:
             return self.small_motion(keyframe, ref, m, R_rot, f"two-view geometry degenerate ({n_in} inliers)", tm)
-        stats = {"inliers": int(rel.inliers.sum()), "inlier_ratio": float(rel.inliers.mean())}
-        # matches re-drawn from M_r * M_s * M_o, plus every pixel that carries depth
-        score2 = inlier_score(epipolar_distance_map(rel.F, m.fw), g.epi_inlier_px) * m.score
-        anchors = None
-        if ref is not None and ref.sparse:
-            anchors = self._capped(np.flatnonzero((ref.depth.ravel() > 0) & (score2.ravel() > 0)))
-        idx2 = self.draw(score2, self.cfg.sampling.n_samples, anchors)
-        t0 = tm.add("redraw", t0)
-        q1, q2 = self.pixels(idx2, m.fw)
-        R, t_unit = rel.R, rel.t
-        X, valid, angle = triangulate_midpoint(q1, q2, K, R, t_unit, min_angle=g.min_angle_rad)
-        t0 = tm.add("triangulate", t0)
+        stats = {"inliers": n_in, "inlier_ratio": float(rel.inliers.mean())}
+        idx2, q1, q2, X, valid, angle = self._triangulate(rel, m, ref, tm)
+        t0 = time.perf_counter()
         if valid.sum() < self.cfg.scale.min_points:
             return self.small_motion(keyframe, ref, m, R_rot, f"only {int(valid.sum())} points triangulated", tm)
         branch, how = Branch.TWO_VIEW, ""
+        R, t_unit = rel.R, rel.t
         d_ref, w_ref, w_new, w_scale = self._depths_at(ref, idx2, valid, angle)
         scale, scale_ok = 1.0, False
         if ref is not None:
@@ -295,21 +322,66 @@ class FrontEnd:
             stats["degraded"] = True
         t0 = tm.add("scale", t0)
         stats["scale"] = float(scale)
-        t_s = t_unit * scale
         X_s = X[valid] * scale
         w_out = w_new
         if scale_ok and self.cfg.depth.fusion and w_ref is not None:
             # small depth filter: fuse carried and new depth along each ray (in log depth)
             d_f, w_out = fuse_log_depth(d_ref, w_ref, X_s[:, 2], w_new, max_log_gap=self.cfg.depth.max_log_gap)
             X_s = X_s * (d_f / X_s[:, 2])[:, None]
-        T_ref_cam = invert_T(make_T(R, t_s))
-        tracks = self._new_tracks(ref, idx2[valid], X_s @ R.T + t_s, w_out)
-        Tw = keyframe.T_world_cam
-        gray = keyframe.image[np.rint(q1[valid, 1]).astype(int), np.rint(q1[valid, 0]).astype(int)]
-        sol = Solution(branch, how, Tw @ T_ref_cam, T_ref_cam, stats, pts_ref=q1[valid], pts_cur=q2[valid],
-                       points_world=X_s @ Tw[:3, :3].T + Tw[:3, 3], point_colors=gray[:, ::-1].copy(),
-                       tracks=tracks, step_norm=float(np.linalg.norm(t_s)))
+        sol = self._solution(keyframe, branch, how, R, t_unit * scale, X_s, idx2[valid], q1[valid], q2[valid],
+                             w_out, stats, ref)
         tm.add("bookkeeping", t0)
+        return sol
+
+    def two_view_to_depth(self, keyframe: Keyframe, ref: ReferenceDepth, cur: ReferenceDepth, m: Matches,
+                          R_rot: np.ndarray, tm: StageTimer) -> Solution:
+        """The authors' per-pair recipe (reference §5): the scale of each pair from the network.
+
+        Two-view pose when the mean flow exceeds ``scale.depth_min_flow_px``; the
+        triangulated depth of the current frame is fitted to the network's depth of
+        the current frame ``cur`` (RANSAC line through the origin). When the flow is
+        small, the geometry degenerate or the fit fails: PnP of the keyframe's
+        network depth ``ref`` (below ``scale.depth_max``) against the matches."""
+        sc, K = self.cfg.scale, self.K
+        mean_flow = float(m.flow_mag.mean())
+        if mean_flow <= sc.depth_min_flow_px:
+            return self._pnp_on_depth(keyframe, ref, m, R_rot, f"mean flow {mean_flow:.2f} px <= "
+                                      f"{sc.depth_min_flow_px} px", tm)
+        rel, n_in = self._relative_pose(m, tm)
+        if rel is None:
+            return self._pnp_on_depth(keyframe, ref, m, R_rot, f"two-view geometry degenerate ({n_in} inliers)", tm)
+        stats = {"inliers": n_in, "inlier_ratio": float(rel.inliers.mean())}
+        idx2, q1, q2, X, valid, angle = self._triangulate(rel, m, ref, tm)
+        t0 = time.perf_counter()
+        X_cur = X[valid] @ rel.R.T + rel.t
+        uv, inside = self.camera.project(X_cur)
+        d_net = np.zeros(X_cur.shape[0])
+        ui, vi = np.rint(uv[inside, 0]).astype(int), np.rint(uv[inside, 1]).astype(int)
+        ok = inside.copy()
+        ok[inside] = (ui >= 0) & (ui < self.camera.w) & (vi >= 0) & (vi < self.camera.h)
+        d_net[ok] = cur.depth[np.rint(uv[ok, 1]).astype(int), np.rint(uv[ok, 0]).astype(int)]
+        scale, fit_ok = fit_scale_ransac(X_cur[:, 2], d_net, threshold=sc.depth_fit_threshold,
+                                         trials=sc.depth_fit_trials, min_points=sc.depth_fit_min_points,
+                                         rng=self.rng)
+        stats["scale_points"] = int((d_net > 0).sum())
+        tm.add("scale", t0)
+        if not fit_ok:
+            return self._pnp_on_depth(keyframe, ref, m, R_rot, f"scale fit to the network depth failed "
+                                      f"({stats['scale_points']} points)", tm)
+        stats["scale"] = float(scale)
+        return self._solution(keyframe, Branch.TWO_VIEW, "", rel.R, rel.t * scale, X[valid] * scale, idx2[valid],
+                              q1[valid], q2[valid], angle[valid] ** 2, stats, None)
+
+    def _pnp_on_depth(self, keyframe: Keyframe, ref: ReferenceDepth, m: Matches, R_rot: np.ndarray, why: str,
+                      tm: StageTimer) -> Solution:
+        """PnP of the keyframe's network depth (0 < d < ``scale.depth_max``) against the drawn matches."""
+        t0 = time.perf_counter()
+        d = ref.depth.ravel()[m.idx]
+        keep = (d > 0) & (d < self.cfg.scale.depth_max)
+        X = unproject(m.pts_ref[keep], d[keep], self.K)
+        sol = small_motion_solution(X, m.pts_ref[keep], m.pts_cur[keep], R_rot, self.K, keyframe.T_world_cam,
+                                    why, self.cfg.geometry.pnp_reproj_px, self.cfg.sampling.seed)
+        tm.add("pnp", t0)
         return sol
 
     def _depths_at(self, ref: ReferenceDepth | None, idx: np.ndarray, valid: np.ndarray, angle: np.ndarray):

@@ -10,12 +10,13 @@ here, in :meth:`Odometry.step`. No I/O: :mod:`trianflow_vo.pipeline` feeds it fr
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 
 from trianflow_vo.backend import PoseRevision
 from trianflow_vo.camera import PinholeCamera
-from trianflow_vo.config import Config
+from trianflow_vo.config import Config, resolve_scale_source
 from trianflow_vo.depth.base import DepthPrior, ReferenceDepth
 from trianflow_vo.flow.base import FlowSource
 from trianflow_vo.frame import Branch, FrameResult, FrameStats, FrameView
@@ -51,23 +52,24 @@ class Odometry:
         self.depth = depth
         self.cfg = config
         self.front = FrontEnd(camera, flow, config, np.random.default_rng(config.sampling.seed))
+        self.scale_source = resolve_scale_source(config)
+        self._solve = self._solve_pairwise if self.scale_source == "depth" else self._solve_to_keyframe
         self.keyframe: Keyframe | None = None
         self.T_world_last = np.eye(4)
         self.last_step_norm: float | None = None  # |t| of the last keyframe-to-keyframe step
         self.line = 0
 
     def describe(self) -> dict:
-        return {"odometry": "trianflow", "flow_source": self.flow.describe(), "depth_source": self.depth.describe()}
+        return {"odometry": "trianflow", "scale_source": self.scale_source, "flow_source": self.flow.describe(),
+                "depth_source": self.depth.describe()}
 
     def step(self, frame_index: int, timestamp: float | None, image: np.ndarray,
              timer: StageTimer | None = None) -> FrameResult:
         """Process one working-resolution frame ``(h, w, 3)`` uint8 BGR.
 
-        Branches, in order: first frame (INIT); too few reliable matches (FAILED);
-        median flow under ``keyframes.static_flow_px`` (IDENTITY); median parallax
-        after removing rotation under ``keyframes.min_parallax_px`` (PNP, or ROTATION
-        without depth); else the two-view step (TWO_VIEW, or PNP when the PnP
-        cross-check overrides it), after which this frame is the new keyframe.
+        Branches: first frame (INIT); too few reliable matches (FAILED); otherwise
+        the policy of ``scale.source`` (:meth:`_solve_to_keyframe` or
+        :meth:`_solve_pairwise`).
         ``timer`` may hold stages timed before the call (the pipeline's resize).
         """
         tm = timer if timer is not None else StageTimer()
@@ -83,20 +85,36 @@ class Odometry:
             sol = failed_solution(kf.T_world_cam, self.T_world_last, f"only {m.idx.size} reliable flow matches")
         else:
             stats["mean_flow_px"] = float(m.flow_mag.mean())
-            median_flow = float(np.median(m.flow_mag))
-            if median_flow < self.cfg.keyframes.static_flow_px:
-                sol = identity_solution(kf.T_world_cam, f"median flow {median_flow:.2f} px: camera static")
-            else:
-                R_rot, parallax = self.front.rotation(m, tm)
-                stats["parallax_px"] = parallax
-                ref = self._reference(kf, tm)
-                min_par = self.cfg.keyframes.min_parallax_px
-                if parallax < min_par:
-                    why = f"parallax {parallax:.2f} px < {min_par} px"
-                    sol = self.front.small_motion(kf, ref, m, R_rot, why, tm)
-                else:
-                    sol = self.front.two_view(kf, ref, m, R_rot, self.last_step_norm, tm)
+            sol, ref = self._solve(kf, m, Keyframe(frame_index, image, prepared, np.eye(4), Tracks.empty()),
+                                   stats, tm)
         return self._commit(frame_index, timestamp, image, prepared, m, ref, sol, stats, tm)
+
+    def _solve_to_keyframe(self, kf: Keyframe, m: Matches, cur: Keyframe, stats: dict, tm: StageTimer):
+        """Our policy (``scale.source`` triangulation / keyframe-depth): ``(Solution, reference depth)``.
+
+        Static camera (median flow under ``keyframes.static_flow_px``): IDENTITY. Median
+        parallax under ``keyframes.min_parallax_px``: PnP/rotation, keyframe kept. Else
+        the two-view step, after which the frame is the new keyframe."""
+        median_flow = float(np.median(m.flow_mag))
+        if median_flow < self.cfg.keyframes.static_flow_px:
+            return identity_solution(kf.T_world_cam, f"median flow {median_flow:.2f} px: camera static"), None
+        R_rot, parallax = self.front.rotation(m, tm)
+        stats["parallax_px"] = parallax
+        ref = self._reference(kf, tm)
+        min_par = self.cfg.keyframes.min_parallax_px
+        if parallax < min_par:
+            why = f"parallax {parallax:.2f} px < {min_par} px"
+            return self.front.small_motion(kf, ref, m, R_rot, why, tm), ref
+        return self.front.two_view(kf, ref, m, R_rot, self.last_step_norm, tm), ref
+
+    def _solve_pairwise(self, kf: Keyframe, m: Matches, cur: Keyframe, stats: dict, tm: StageTimer):
+        """The authors' policy (``scale.source`` depth): every pair scaled by the network depth of
+        the new frame; every frame becomes the next reference."""
+        R_rot, parallax = self.front.rotation(m, tm)
+        stats["parallax_px"] = parallax
+        ref = self._reference(kf, tm)
+        sol = self.front.two_view_to_depth(kf, ref, self._reference(cur, tm), m, R_rot, tm)
+        return (sol if sol.tracks is not None else replace(sol, tracks=Tracks.empty())), ref
 
     def _reference(self, kf: Keyframe, tm: StageTimer) -> ReferenceDepth | None:
         t0 = time.perf_counter()

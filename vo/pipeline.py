@@ -23,7 +23,7 @@ from pathlib import Path
 import cv2
 from trianflow_vo.backend import Backend, Trajectory, make_backend
 from trianflow_vo.camera import PinholeCamera, working_size
-from trianflow_vo.config import Config, write_config_yaml
+from trianflow_vo.config import Config, resolve_scale_source, write_config_yaml
 from trianflow_vo.depth.base import DepthPrior
 from trianflow_vo.errors import InputError
 from trianflow_vo.flow.base import FlowSource
@@ -52,8 +52,9 @@ def make_flow_source(config: Config) -> FlowSource:
 
 
 def make_depth_prior(config: Config, size_hw: tuple[int, int]) -> DepthPrior:
-    """Depth carried by triangulation (weight-free) or the ONNX depth network of ``depth.model``."""
-    if config.depth.model is not None:
+    """Depth carried by triangulation (weight-free) or the ONNX depth network of ``depth.model``,
+    as ``scale.source`` says."""
+    if resolve_scale_source(config) != "triangulation":
         from trianflow_vo.depth.network import NetworkDepth
         from trianflow_vo.depth.onnx_depth import OnnxDepthNet
 
@@ -101,6 +102,8 @@ def run(
     if h <= 0 or w <= 0:
         raise InputError(f"bad working size {h}x{w}")
     camera = PinholeCamera(reader.K, (H, W)).resized((h, w))
+    if resolve_scale_source(config) == "triangulation" and config.depth.model is not None:
+        log.warning("depth.model is not used with scale.source=triangulation (scale from carried depth)")
     odo = (odometry_factory or make_odometry)(camera, config)
     backend = backend or make_backend(config.backend.kind)
     gt = None
