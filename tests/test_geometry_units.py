@@ -1,5 +1,5 @@
 """Unit tests of the smaller pieces: scale alignment, PnP, rotation fit, masks,
-working size and intrinsics scaling, the triangulated depth store."""
+working size and intrinsics scaling (the triangulated depth: tests/depth/test_triangulated.py)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,6 @@ import pytest
 
 from synthetic import K_TEST, project, two_view_scene
 from trianflow_vo.camera import scale_intrinsics, working_size
-from trianflow_vo.depth.triangulated import TriangulatedDepth
 from trianflow_vo.flow.masks import fb_distance, flow_scores, occlusion_mask, range_map
 from trianflow_vo.camera import unproject as backproject
 from trianflow_vo.geometry.pnp import solve_pnp
@@ -147,24 +146,3 @@ def test_scale_intrinsics_maps_points_like_resize():
     assert np.allclose(u2[:, 1], (u[:, 1] + 0.5) * sy - 0.5)
     with pytest.raises(ValueError):
         scale_intrinsics(np.eye(4), (1, 1), (1, 1))
-
-
-# --------------------------------------------------------------------------- depth store
-def test_triangulated_depth_store():
-    store = TriangulatedDepth((10, 20), keep=2)
-    assert store.predict(0) is None
-    store.observe(0, np.array([[3.2, 4.6], [3.4, 4.8], [15.0, 2.0]]), np.array([5.0, 7.0, 9.0]),
-                  np.array([1.0, 2.0, 1.0]))
-    d = store.predict(0)
-    assert d.shape == (10, 20)
-    assert d[5, 3] == 7.0  # two points round to (x=3, y=5): the higher weight wins
-    assert d[2, 15] == 9.0
-    assert (d > 0).sum() == 2
-    assert store.weight(0)[5, 3] == 2.0
-    # outside the image, non-finite or non-positive depths are dropped
-    store.observe(1, np.array([[-1.0, 0.0], [1.0, 1.0], [2.0, 2.0]]), np.array([1.0, np.nan, -1.0]), np.ones(3))
-    assert (store.predict(1) > 0).sum() == 0
-    store.observe(2, np.array([[1.0, 1.0]]), np.array([1.0]), np.ones(1))
-    assert store.predict(0) is None  # only the newest `keep` frames are kept
-    store.forget(2)
-    assert store.predict(2) is None

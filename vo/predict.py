@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from trianflow_vo.errors import InputError, ModelError
+from trianflow_vo.io.atomic import write_atomic
 from trianflow_vo.io.flo import encode_flo
 from trianflow_vo.io.sequence import IMAGE_EXTENSIONS, decode_image, list_images
 from trianflow_vo.nets.onnx_runtime import OnnxModel
@@ -132,19 +133,6 @@ def prepare_out_dir(out_dir: str | Path) -> Path:
     if not os.access(out_dir, os.W_OK | os.X_OK):
         raise InputError("output folder is not writable", out_dir)
     return out_dir
-
-
-def write_atomic(path: Path, data: bytes) -> Path:
-    """Write ``data`` to ``path.tmp``, then rename it to ``path`` (never a half-written ``path``)."""
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
 
 
 def _npy_bytes(array: np.ndarray) -> bytes:

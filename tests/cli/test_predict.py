@@ -45,14 +45,16 @@ def _set_resize(src, dst, method):
 
 @pytest.fixture(scope="module")
 def models(tmp_path_factory):
-    """``{"depth", "flow"}``: the exported models; ``{"depth-linear", "flow-linear"}``: the same
-    graphs with ``trianflow.resize = linear`` (the TrianFlow authors' preprocessing)."""
+    """``{"depth", "flow"}``: the exported models; ``{"depth-linear", "flow-linear"}`` and
+    ``{"depth-area", "flow-area"}``: the same graphs with ``trianflow.resize`` set to ``linear``
+    (the TrianFlow authors' preprocessing) and to ``area-down-linear-up``."""
     d = tmp_path_factory.mktemp("models")
     r = CliRunner().invoke(main, ["export", "--random-init", "--seed", "0", "--size", "64x192", "--out-dir", str(d)])
     assert r.exit_code == 0, r.output
     out = {"depth": d / "depth.onnx", "flow": d / "flow.onnx"}
     for kind in ("depth", "flow"):
         out[kind + "-linear"] = _set_resize(out[kind], d / f"{kind}-linear.onnx", "linear")
+        out[kind + "-area"] = _set_resize(out[kind], d / f"{kind}-area.onnx", "area-down-linear-up")
     return out
 
 
@@ -161,13 +163,13 @@ def test_depth_matches_onnxruntime_at_input_size(models, frames, tmp_path, kind)
 def test_resize_method_comes_from_metadata(models, frames):
     """The two resize methods give different inputs here; each model's output follows its own."""
     img = frames / "img1.png"
-    meta = _meta(models["depth"])
-    assert meta.get("trianflow.resize", "area-down-linear-up") != "linear"
+    meta = _meta(models["depth-area"])
+    assert meta["trianflow.resize"] == "area-down-linear-up"
     assert _meta(models["depth-linear"])["trianflow.resize"] == "linear"
     area_in, lin_in = (_reference_input(img, meta, m) for m in ("area-down-linear-up", "linear"))
     assert np.abs(area_in - lin_in).max() > 10
     lin = P.run_depth(OnnxModel(models["depth-linear"], "depth"), cv2.imread(str(img)))
-    area = P.run_depth(OnnxModel(models["depth"], "depth"), cv2.imread(str(img)))
+    area = P.run_depth(OnnxModel(models["depth-area"], "depth"), cv2.imread(str(img)))
     np.testing.assert_allclose(lin, _ref_depth(models["depth"], img, "linear"), rtol=0, atol=1e-6)
     np.testing.assert_allclose(area, _ref_depth(models["depth"], img, "area-down-linear-up"), rtol=0, atol=1e-6)
     assert np.abs(lin - area).max() > 1e-5  # the check above can tell the two methods apart

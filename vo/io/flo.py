@@ -10,12 +10,12 @@ memory layout of a C-contiguous ``(H, W, 2)`` float32 array.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
 from trianflow_vo.errors import InputError
+from trianflow_vo.io.atomic import write_atomic
 
 FLO_MAGIC = 202021.25
 _MAGIC_BYTES = np.array([FLO_MAGIC], dtype="<f4").tobytes()  # b"PIEH"
@@ -56,17 +56,7 @@ def decode_flo(data: bytes, source: str | Path = "<bytes>") -> np.ndarray:
 
 def write_flo(path: str | Path, flow: np.ndarray) -> Path:
     """Write ``flow`` ``(H, W, 2)`` to ``path`` (via ``path.tmp`` and a rename); returns ``path``."""
-    path = Path(path)
-    data = encode_flo(flow)
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+    return write_atomic(path, encode_flo(flow))
 
 
 def read_flo(path: str | Path) -> np.ndarray:

@@ -53,20 +53,42 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from trianflow_vo.errors import DependencyError, InputError, VOError
+from trianflow_vo.errors import ConfigError, DependencyError, InputError, VOError
 from trianflow_vo.backend import RevisedPoses
 from trianflow_vo.frame import Branch, FrameResult, FrameView
 from trianflow_vo.observer import Observer
 from trianflow_vo.viz.flow_color import flow_to_rgb
 from trianflow_vo.viz.plot import align_estimate_to_gt
 
-RERUN_INSTALL_HINT = "pip install 'trianflow-vo[rerun]' (or pip install 'rerun-sdk>=0.28,<0.42')"
+def rerun_install_hint() -> str:
+    """How to install rerun-sdk, with the version range of the installed trianflow-vo's ``rerun`` extra
+    (its requirement metadata); without the metadata just the extra."""
+    fallback = "pip install 'trianflow-vo[rerun]'"
+    try:
+        from importlib.metadata import PackageNotFoundError, requires
+
+        reqs = requires("trianflow-vo") or []
+    except (ImportError, PackageNotFoundError, OSError, ValueError):
+        return fallback
+    for req in reqs:
+        spec, _, marker = req.partition(";")
+        name = spec.strip()
+        base = name.split("[")[0]
+        for ch in "<>=!~ (":
+            base = base.split(ch)[0]
+        if base.lower().replace("_", "-") == "rerun-sdk" and re.search(r"extra\s*==\s*['\"]rerun['\"]", marker):
+            return f"{fallback} (or pip install '{name.replace(' ', '')}')"
+    return fallback
+
+
+RERUN_INSTALL_HINT = rerun_install_hint()
 
 BRANCH_CODES = {"init": 0, "two-view": 1, "pnp": 2, "rotation": 3, "identity": 4, "failed": 5}
 
@@ -87,12 +109,40 @@ def no_display_reason() -> str | None:
     return None
 
 
+def check_rerun_output(path: str | Path | None, spawn: bool, out_dir: str | Path | None = None) -> None:
+    """Check a run's Rerun output before anything is written: raises, does not create anything.
+
+    ``path`` must be a file whose folder exists (or is ``out_dir``, the run folder about
+    to be created), not a folder; ``spawn`` needs a display; both need rerun-sdk.
+
+    Raises:
+        ConfigError: ``path`` is a folder or its folder does not exist (key ``output.rerun``).
+        VOError: ``spawn`` without a display.
+        DependencyError: rerun-sdk is not installed.
+    """
+    if path is not None:
+        p = Path(path)
+        if p.is_dir():
+            raise ConfigError(f"{p} is a folder; give a recording file, e.g. {p / 'run.rrd'}", key="output.rerun")
+        parent = p.parent
+        is_run_dir = out_dir is not None and os.path.abspath(parent) == os.path.abspath(out_dir)
+        if not parent.is_dir() and not is_run_dir:
+            what = "is not a folder" if parent.exists() else "does not exist"
+            raise ConfigError(f"{p}: the folder {parent} {what}; create it first or choose another path",
+                              key="output.rerun")
+    if spawn:
+        reason = no_display_reason()
+        if reason is not None:
+            raise VOError(f"cannot open a live Rerun viewer: {reason}; write a recording with --rerun FILE.rrd instead")
+    import_rerun()
+
+
 def import_rerun():
     """The ``rerun`` module, or ``DependencyError`` with the install hint."""
     try:
         import rerun as rr
     except ImportError as exc:
-        raise DependencyError(f"rerun-sdk is needed for Rerun recordings ({exc}): {RERUN_INSTALL_HINT}") from None
+        raise DependencyError(f"rerun-sdk is needed for Rerun recordings ({exc}): {rerun_install_hint()}") from None
     return rr
 
 
@@ -361,7 +411,7 @@ class RerunObserver(Observer):
 
     # -- Observer ----------------------------------------------------------------
 
-    def on_frame(self, view: FrameView) -> None:
+    def on_frame(self, record: FrameResult) -> None:
         if self._closed:
             raise RuntimeError("RerunObserver.on_frame after close()")
         rr, rec = self._rr, self._rec

@@ -17,13 +17,14 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from trianflow_vo.cli.main import main
 from conftest import SAMPLE
-from trianflow_vo.config import RunConfig
+from trianflow_vo.cli.main import main
+from trianflow_vo.config import Config, load_config, merge_dict
 from trianflow_vo.eval.evaluate import evaluate
+from trianflow_vo.frame import FrameResult
 from trianflow_vo.geometry.se3 import rotation_angle
 from trianflow_vo.io.trajectory import quaternion_to_rotation, read_trajectory
-from trianflow_vo.observer import FrameRecord
+from trianflow_vo.observer import Observer
 
 
 def invoke(*args):
@@ -105,10 +106,13 @@ def check_run_folder(out: Path, doc: dict, expected_frames: list[int]) -> None:
 def test_sample_stride3_outputs(sample_stride3):
     out, doc = sample_stride3
     check_run_folder(out, doc, list(range(0, 48, 3)))
-    assert doc["config"]["stride"] == 3 and doc["config"]["seed"] == 0
+    assert doc["config"]["input"]["stride"] == 3 and doc["config"]["sampling"]["seed"] == 0
+    # config.yaml beside run.json holds the same effective configuration (and reproduces the run)
+    assert load_config(out / "config.yaml").to_dict() == doc["config"]
+    assert doc["warnings"] == {} and doc["revisions"]["count"] == 0
     assert doc["sequence"]["kind"] == "kitti"
     assert doc["working_size_hw"] == [256, 832]
-    assert doc["flow_source"]["name"] == "dis" and doc["depth_source"]["name"] == "triangulated"
+    assert doc["flow_source"]["name"] == "dis" and doc["depth_source"] == {"name": "triangulated"}
     assert doc["branch_counts"]["failed"] == 0
     assert (out / "trajectory.png").stat().st_size > 0
 
@@ -161,13 +165,13 @@ def test_same_seed_same_poses_other_seed_other_poses(sample_seq, tmp_path):
 # --------------------------------------------------------------------------- interruption and crashes
 
 
-class RaiseAt:
+class RaiseAt(Observer):
     """Observer raising ``exc`` when it sees its ``n``-th frame (after the writer has it)."""
 
     def __init__(self, n: int, exc: BaseException):
         self.n, self.exc, self.seen, self.closed = n, exc, 0, None
 
-    def on_frame(self, rec: FrameRecord) -> None:
+    def on_frame(self, rec: FrameResult) -> None:
         self.seen += 1
         if self.seen == self.n:
             raise self.exc
@@ -176,8 +180,8 @@ class RaiseAt:
         self.closed = interrupted
 
 
-def _library_config(seq: Path, out: Path) -> RunConfig:
-    return RunConfig(seq=seq, out_dir=out, stride=3, plot=False, quiet=True)
+def _library_config() -> Config:
+    return merge_dict(Config(), {"input": {"stride": 3}, "output": {"plot": False}}, "test")
 
 
 def check_partial_run(out: Path, n: int, status: str) -> dict:
@@ -198,7 +202,7 @@ def test_interrupt_keeps_valid_trajectory(sample_seq, tmp_path):
     out = tmp_path / "out"
     bomb = RaiseAt(5, KeyboardInterrupt())
     with pytest.raises(KeyboardInterrupt):
-        run(_library_config(sample_seq, out), observers=[bomb])
+        run(sample_seq, out, _library_config(), observers=[bomb])
     doc = check_partial_run(out, 5, "interrupted")
     assert doc["error"] is None
     assert bomb.closed is True  # observers are told
@@ -208,10 +212,12 @@ def test_crash_keeps_valid_trajectory(sample_seq, tmp_path):
     from trianflow_vo.pipeline import run
 
     out = tmp_path / "out"
+    bomb = RaiseAt(4, RuntimeError("boom"))
     with pytest.raises(RuntimeError):
-        run(_library_config(sample_seq, out), observers=[RaiseAt(4, RuntimeError("boom"))])
+        run(sample_seq, out, _library_config(), observers=[bomb])
     doc = check_partial_run(out, 4, "failed")
     assert "RuntimeError: boom" in doc["error"]
+    assert bomb.closed is True  # closed as interrupted after an error too
 
 
 def test_cli_interrupt_exit_130(sample_seq, tmp_path, monkeypatch):
@@ -219,8 +225,11 @@ def test_cli_interrupt_exit_130(sample_seq, tmp_path, monkeypatch):
 
     real_run = trianflow_vo.pipeline.run
 
-    def run_with_ctrl_c(config, observers=(), on_warning=None):
-        return real_run(config, observers=[*observers, RaiseAt(3, KeyboardInterrupt())], on_warning=on_warning)
+    seen = {}
+
+    def run_with_ctrl_c(seq, out_dir, config=Config(), observers=(), **kwargs):
+        seen.update(seq=seq, out_dir=out_dir, config=config)
+        return real_run(seq, out_dir, config, observers=[*observers, RaiseAt(3, KeyboardInterrupt())], **kwargs)
 
     monkeypatch.setattr(trianflow_vo.pipeline, "run", run_with_ctrl_c)
     out = tmp_path / "out"
@@ -229,6 +238,9 @@ def test_cli_interrupt_exit_130(sample_seq, tmp_path, monkeypatch):
     assert "Traceback" not in r.output
     assert f"interrupted: the trajectory so far is in {out}" in r.output
     check_partial_run(out, 3, "interrupted")
+    # the command passed the sequence, the folder and the flags (as config keys) to the library
+    assert seen["seq"] == sample_seq and seen["out_dir"] == out
+    assert seen["config"].input.stride == 3 and seen["config"].output.plot is False
 
 
 # --------------------------------------------------------------------------- static camera
@@ -250,6 +262,7 @@ def test_static_camera_gives_identity(sample_seq, tmp_path):
     static = [d for d in doc["degraded"] if d["branch"] == "identity"]
     assert [d["frame"] for d in static] == [1, 2, 3, 4]
     assert all("static" in d["reason"] for d in static)
+    assert doc["warnings"] == {}  # a static camera is routine (logged with -v), not a warning
 
 
 # --------------------------------------------------------------------------- shared clips (skipped without ../shared)

@@ -14,12 +14,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from trianflow_vo.camera import PinholeCamera
+from trianflow_vo.config import Config, merge_dict
 from trianflow_vo.depth.triangulated import TriangulatedDepth
+from trianflow_vo.frame import Branch, FrameResult
 from trianflow_vo.geometry.se3 import invert_T, make_T, rodrigues, rotation_angle
-from trianflow_vo.odometry import Odometry, OdometryParams
+from trianflow_vo.odometry import Odometry
 
 H, W = 160, 512
 K = np.array([[300.0, 0.0, 255.5], [0.0, 300.0, 79.5], [0.0, 0.0, 1.0]])
+CAMERA = PinholeCamera(K, (H, W))
 # box planes n . X = d in world coordinates (camera 0 = world: x right, y down, z forward)
 PLANES = [
     (np.array([0.0, 1.0, 0.0]), 1.6),  # ground 1.6 m below the camera
@@ -90,14 +94,17 @@ class BoxFlow:
 
 
 # the synthetic steps have 2-3 px of parallax: below the 3 px default that sends
-# indoor-size motion to PnP, so the two-view tests lower it
-TWO_VIEW = {"min_parallax_px": 1.0}
+# indoor-size motion to PnP, so the two-view tests lower it (keyframes.min_parallax_px)
+TWO_VIEW = {"keyframes": {"min_parallax_px": 1.0}}
 
 
-def run_odometry(poses: list[np.ndarray], noise_px: float = 0.0, **params):
-    params = {**TWO_VIEW, **params}
+def make_config(seed: int = 0) -> Config:
+    return merge_dict(Config(), {**TWO_VIEW, "sampling": {"seed": seed}}, "test")
+
+
+def run_odometry(poses: list[np.ndarray], noise_px: float = 0.0, seed: int = 0) -> list[FrameResult]:
     flow = BoxFlow(poses, noise_px)
-    odo = Odometry(K, (H, W), flow, TriangulatedDepth((H, W)), OdometryParams(**params))
+    odo = Odometry(CAMERA, flow, TriangulatedDepth((H, W)), make_config(seed))
     image = np.zeros((H, W, 3), np.uint8)
     return [odo.step(i, None, image) for i in range(len(poses))]
 
@@ -136,7 +143,7 @@ def test_box_flow_is_consistent():
 
 def check_chain(poses, recs, speeds, rot_deg, dir_deg, ratio_rel):
     """Per-step rotation and direction errors, and |t_k| / |t_k-1| against the truth."""
-    assert [r.branch for r in recs] == ["init"] + ["two-view"] * len(speeds), [r.reason for r in recs]
+    assert [r.branch for r in recs] == [Branch.INIT] + [Branch.TWO_VIEW] * len(speeds), [r.reason for r in recs]
     assert recs[1].reason.startswith("first two-view step")  # the unit of scale
     for r in recs[2:]:
         assert r.reason == "", r.reason  # scale came from the carried depth, not the constant-speed fallback
@@ -192,7 +199,7 @@ def test_two_view_chain_noise_and_moving_object(seed):
     speeds = (1.0, 1.5, 0.8)
     poses = trajectory([([0.0, YAW, 0.0], s * DIRECTION) for s in speeds])
     flow = MovingObjectFlow(poses, noise_px=0.5, seed=seed)
-    odo = Odometry(K, (H, W), flow, TriangulatedDepth((H, W)), OdometryParams(seed=seed, **TWO_VIEW))
+    odo = Odometry(CAMERA, flow, TriangulatedDepth((H, W)), make_config(seed))
     recs = [odo.step(i, None, np.zeros((H, W, 3), np.uint8)) for i in range(len(poses))]
     check_chain(poses, recs, speeds, rot_deg=0.1, dir_deg=1.0, ratio_rel=0.02)
 
@@ -203,9 +210,9 @@ def test_pnp_on_small_motion_after_depth_is_known():
     small_t = np.array([0.004, 0.0, 0.01])
     poses = trajectory([([0.0, 0.01, 0.0], fwd), ([0.0, 0.01, 0.0], fwd), ([0.0, 0.003, 0.0], small_t)])
     recs = run_odometry(poses)
-    assert [r.branch for r in recs[:3]] == ["init", "two-view", "two-view"]
+    assert [r.branch for r in recs[:3]] == [Branch.INIT, Branch.TWO_VIEW, Branch.TWO_VIEW]
     rec = recs[3]
-    assert rec.branch == "pnp", (rec.branch, rec.reason)
+    assert rec.branch is Branch.PNP, (rec.branch, rec.reason)
     assert "parallax" in rec.reason
     assert rec.ref_index == 2
     T_est = invert_T(recs[2].T_world_cam) @ rec.T_world_cam
@@ -222,7 +229,7 @@ def test_pure_rotation_gives_rotation_branch(rvec):
     poses = trajectory([(rvec, [0.0, 0.0, 0.0])])
     recs = run_odometry(poses)
     rec = recs[1]
-    assert rec.branch == "rotation", (rec.branch, rec.reason)
+    assert rec.branch is Branch.ROTATION, (rec.branch, rec.reason)
     assert "parallax" in rec.reason and "no depth yet" in rec.reason
     assert rot_err_deg(rec.T_world_cam[:3, :3], poses[1][:3, :3]) < 0.01
     assert np.allclose(rec.T_world_cam[:3, 3], 0.0)
@@ -232,7 +239,7 @@ def test_pure_rotation_gives_rotation_branch(rvec):
 def test_static_camera_is_identity_exactly():
     poses = [np.eye(4)] * 3
     recs = run_odometry(poses)
-    assert [r.branch for r in recs] == ["init", "identity", "identity"]
+    assert [r.branch for r in recs] == [Branch.INIT, Branch.IDENTITY, Branch.IDENTITY]
     for r in recs:
         assert np.array_equal(r.T_world_cam, np.eye(4))
 
@@ -241,7 +248,47 @@ def test_rotation_then_translation_keeps_keyframe():
     """A pure rotation does not become the keyframe; the next moving frame is solved from frame 0."""
     poses = trajectory([([0.0, 0.03, 0.0], [0.0, 0.0, 0.0]), ([0.0, 0.0, 0.0], [0.05, 0.0, 1.0])])
     recs = run_odometry(poses)
-    assert [r.branch for r in recs] == ["init", "rotation", "two-view"]
+    assert [r.branch for r in recs] == [Branch.INIT, Branch.ROTATION, Branch.TWO_VIEW]
+    assert [r.is_keyframe for r in recs] == [True, False, True]
     assert recs[2].ref_index == 0
     assert rot_err_deg(recs[2].T_world_cam[:3, :3], poses[2][:3, :3]) < 0.01
     assert angle_deg(recs[2].T_world_cam[:3, 3], poses[2][:3, 3]) < 0.05
+
+
+# --------------------------------------------------------------------------- the FrameResult contract
+
+
+def test_results_stay_attached_to_their_keyframe():
+    """Every result says which keyframe it was solved from and where it is in it:
+    ``T_world_cam == T_world_ref @ T_ref_cam`` (what a back-end revision relies on)."""
+    fwd = np.array([0.0, 0.0, 1.0])
+    poses = trajectory([([0.0, 0.01, 0.0], fwd), ([0.0, 0.01, 0.0], fwd), ([0.0, 0.003, 0.0], [0.004, 0.0, 0.01])])
+    poses.append(poses[2])  # back at keyframe 2: static against it
+    recs = run_odometry(poses)
+    assert [r.branch for r in recs] == [Branch.INIT, Branch.TWO_VIEW, Branch.TWO_VIEW, Branch.PNP, Branch.IDENTITY]
+    assert [r.line for r in recs] == list(range(len(poses)))
+    assert [r.frame_index for r in recs] == list(range(len(poses)))
+    assert [r.is_keyframe for r in recs] == [True, True, True, False, False]
+    assert [r.ref_index for r in recs] == [None, 0, 1, 2, 2]
+    pose_of = {r.frame_index: r.T_world_cam for r in recs}
+    assert np.array_equal(recs[0].T_ref_cam, np.eye(4))
+    for r in recs[1:]:
+        np.testing.assert_allclose(pose_of[r.ref_index] @ r.T_ref_cam, r.T_world_cam, atol=1e-9)
+    # typed statistics: measured where the branch measures them, None elsewhere
+    assert recs[0].stats.mean_flow_px is None and recs[0].stats.parallax_px is None
+    for r in recs[1:4]:
+        assert r.stats.mean_flow_px > 0 and r.stats.parallax_px is not None and r.stats.inliers > 0
+    assert recs[1].stats.scale == pytest.approx(1.0) and recs[2].stats.scale > 0
+    assert recs[4].stats.parallax_px is None  # static: stopped before the rotation fit
+    for r in recs:
+        assert not r.is_degraded
+        assert r.stats.frame_ms is not None and "prepare" in r.stats.ms
+    # the view of a two-view step has its matches and triangulated points, all read-only
+    v = recs[2].view
+    assert v.flow.shape == (H, W, 2) and v.depth.shape == (H, W)
+    assert v.pts_ref.shape == v.pts_cur.shape and v.points_world.shape[1] == 3
+    assert len(v.points_world) == len(v.point_colors) > 100
+    for a in (v.image, v.flow, v.depth, v.pts_ref, v.points_world, recs[2].T_world_cam, recs[2].T_ref_cam):
+        assert not a.flags.writeable
+    with pytest.raises(Exception):  # frozen dataclass
+        recs[2].branch = Branch.FAILED

@@ -12,12 +12,13 @@ import cv2
 import numpy as np
 import pytest
 
+from trianflow_vo.backend import RevisedPoses
 from trianflow_vo.errors import DependencyError, InputError, VOError
-from trianflow_vo.observer import FrameRecord
+from trianflow_vo.frame import Branch, FrameResult, FrameStats, FrameView
 from trianflow_vo.viz.flow_color import flow_to_rgb
 from trianflow_vo.viz.rerun_logger import BRANCH_CODES, RerunObserver, quantize_depth
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 rr = pytest.importorskip("rerun")
 
@@ -53,18 +54,27 @@ def synthetic_records(n=10, h=64, w=192, seed=0, n_matches=800, n_points=1500, s
         pc = pr + rng.normal(0, 2, pr.shape)
         pts = None if i in skip_points_at else rng.normal([0, 0, 10 + i], [3, 1, 3], (n_points, 3))
         cols = None if pts is None else rng.integers(0, 255, (n_points, 3), dtype=np.uint8)
+        branch = Branch.INIT if i == 0 else (Branch.FAILED if i == 5 else Branch.TWO_VIEW)
         out.append(
-            FrameRecord(
-                line=i, frame_index=10 + i, timestamp=0.1 * i, T_world_cam=T,
-                branch="init" if i == 0 else ("failed" if i == 5 else "two-view"),
+            FrameResult(
+                line=i, frame_index=10 + i, timestamp=0.1 * i, T_world_cam=T, branch=branch,
                 reason="too few inliers" if i == 5 else "",
-                image=img, K=K, ref_index=10 + ref, depth=depth, flow=flow, pts_ref=pr, pts_cur=pc,
-                points_world=pts, point_colors=cols,
-                stats={"inliers": 100 + i, "scale": 1.5, "mean_flow": 2.0 + i, "parallax": 0.5, "ms": {"flow": 7.0, "pose": 2.0 + i},
-                       "note": "not a scalar", "nan": float("nan")},
+                ref_index=10 + ref, T_ref_cam=np.eye(4), is_keyframe=branch is Branch.TWO_VIEW, K=K,
+                # pnp_ratio NaN (not finite) and scale_points None (not measured) must not be logged
+                stats=FrameStats(inliers=100 + i, scale=1.5, mean_flow_px=2.0 + i, parallax_px=0.5,
+                                 pnp_ratio=float("nan"), ms={"flow": 7.0, "pose": 2.0 + i}),
+                view=FrameView.of(image=img, depth=depth, flow=flow, pts_ref=pr, pts_cur=pc,
+                                  points_world=pts, point_colors=cols),
             )
         )
     return out
+
+
+def minimal_result(i: int, T=None) -> FrameResult:
+    """A result with nothing to draw: no view, no K, no statistics."""
+    return FrameResult(line=i, frame_index=i, timestamp=None, T_world_cam=np.eye(4) if T is None else T,
+                       branch=Branch.IDENTITY, reason="", ref_index=0, T_ref_cam=np.eye(4), is_keyframe=False,
+                       K=None, stats=FrameStats())
 
 
 def write(path, records, **kw) -> Path:
@@ -215,10 +225,10 @@ def test_recording_has_one_row_per_frame_per_entity(synthetic_recording):
     assert frames_of("/reference/flow", "EncodedImage:blob") == frames
     assert frames_of("/world/trajectory", "LineStrips3D:strips") == frames
     assert frames_of("/log", "TextLog:text") == frames
-    for name in ("inliers", "scale", "mean_flow", "parallax", "ms/flow", "ms/pose", "branch"):
+    for name in ("inliers", "scale", "mean_flow_px", "parallax_px", "ms/flow", "ms/pose", "branch"):
         assert frames_of(f"/stats/{name}", "Scalars:scalars") == frames, name
-    assert ("/stats/note", "Scalars:scalars") not in rows  # not a scalar
-    assert ("/stats/nan", "Scalars:scalars") not in rows  # not finite
+    assert ("/stats/scale_points", "Scalars:scalars") not in rows  # not measured (None)
+    assert ("/stats/pnp_ratio", "Scalars:scalars") not in rows  # not finite
     # depth only when the reference frame changes (references 10, 13, 16, 19; frame 1 keeps 10)
     assert frames_of("/reference/depth", "DepthImage:buffer") == [10, 13, 16, 19]
     # points of frame 5 are missing: cleared there, logged elsewhere
@@ -251,24 +261,50 @@ def test_recording_values(synthetic_recording):
     for _, pts in rows[("/world/points", "Points3D:positions")]:
         assert len(pts) == 1000
     branch = [v[0] for _, v in rows[("/stats/branch", "Scalars:scalars")]]
-    assert branch == [BRANCH_CODES[r.branch] for r in records]
+    assert branch == [BRANCH_CODES[r.branch.value] for r in records]
     inliers = [v[0] for _, v in rows[("/stats/inliers", "Scalars:scalars")]]
-    assert inliers == [r.stats["inliers"] for r in records]
+    assert inliers == [r.stats.inliers for r in records]
     pose_ms = [v[0] for _, v in rows[("/stats/ms/pose", "Scalars:scalars")]]
-    assert pose_ms == [r.stats["ms"]["pose"] for r in records]
+    assert pose_ms == [r.stats.ms["pose"] for r in records]
+    flow_px = [v[0] for _, v in rows[("/stats/mean_flow_px", "Scalars:scalars")]]
+    assert flow_px == [r.stats.mean_flow_px for r in records]
     texts = dict(rows[("/log", "TextLog:text")])
     levels = dict(rows[("/log", "TextLog:level")])
     assert "failed" in texts[15][0] and "too few inliers" in texts[15][0] and levels[15] == ["WARN"]
     assert levels[11] == ["INFO"]
     # the image decodes to the logged size
     blob = bytes(rows[("/world/camera/image", "EncodedImage:blob")][0][1][0])
-    assert cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_COLOR).shape == records[0].image.shape
+    assert cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_COLOR).shape == records[0].view.image.shape
     # the depth is the reference depth subsampled by 4 and quantised
     buf = rows[("/reference/depth", "DepthImage:buffer")][0][1][0]
     fmt = rows[("/reference/depth", "DepthImage:format")][0][1][0]
     meter = rows[("/reference/depth", "DepthImage:meter")][0][1][0]
     d = np.frombuffer(bytes(buf), np.uint16).reshape(fmt["height"], fmt["width"]) / meter
-    np.testing.assert_allclose(d, records[0].depth[::4, ::4], atol=1e-3)
+    np.testing.assert_allclose(d, records[0].view.depth[::4, ::4], atol=1e-3)
+
+
+def test_revised_poses_relog_the_trajectory(tmp_path):
+    records = synthetic_records(n=6, n_matches=10, n_points=10)
+    obs = RerunObserver(tmp_path / "rev.rrd")
+    for r in records:
+        obs.on_frame(r)
+    shift = np.array([0.5, -1.0, 2.0])
+    lines = np.array([1, 2])
+    moved = np.stack([records[i].T_world_cam for i in lines])
+    moved[:, :3, 3] += shift
+    obs.on_poses_revised(RevisedPoses(lines, np.array([11, 12]), moved, revision=1, reason="test revision"))
+    obs.close()
+    rows = read_recording(tmp_path / "rev.rrd")
+    strips = rows[("/world/trajectory", "LineStrips3D:strips")]
+    assert len(strips) == len(records) + 1  # one per frame, and once more after the revision
+    f, last = strips[-1]
+    assert f == records[-1].frame_index  # logged at the current frame
+    expect = np.stack([r.T_world_cam[:3, 3] for r in records])
+    expect[lines] += shift
+    np.testing.assert_allclose(np.array(last[0]), expect, atol=1e-5)
+    texts = [v[0] for _, v in rows[("/log", "TextLog:text")]]
+    assert any("poses revised (2 frames): test revision" in t for t in texts)
+    assert rerun_cli("rrd", "verify", str(tmp_path / "rev.rrd")).returncode == 0
 
 
 def test_ground_truth_is_aligned_into_the_estimate_frame(tmp_path):
@@ -312,7 +348,7 @@ def test_interrupted_close_is_logged_and_idempotent(tmp_path):
 def test_minimal_records_without_optional_fields(tmp_path):
     obs = RerunObserver(tmp_path / "m.rrd")
     for i in range(3):
-        obs.on_frame(FrameRecord(line=i, frame_index=i, timestamp=None, T_world_cam=np.eye(4), branch="identity"))
+        obs.on_frame(minimal_result(i))
     obs.close()
     rows = read_recording(tmp_path / "m.rrd")
     assert len(rows[("/world/camera", "Transform3D:translation")]) == 3
@@ -340,12 +376,13 @@ def realistic_records(sample_dir: Path, n: int, h=256, w=832):
         flow = np.stack([(xx - 407) / depth, (yy - 126) / depth], -1).astype(np.float32)
         pr = rng.uniform([0, 0], [w, h], (3000, 2))
         out.append(
-            FrameRecord(
-                line=i, frame_index=i, timestamp=0.1 * i, T_world_cam=pose(np.eye(3), [0, 0, i]), branch="two-view",
-                image=img, K=K, ref_index=i, depth=depth, flow=flow, pts_ref=pr, pts_cur=pr + 1.0,
-                points_world=rng.normal([0, 0, 20 + i], [5, 1, 5], (5000, 3)),
-                point_colors=rng.integers(0, 255, (5000, 3), dtype=np.uint8),
-                stats={"inliers": 2000, "scale": 1.0, "mean_flow": 5.0, "parallax": 1.0, "ms": 90.0},
+            FrameResult(
+                line=i, frame_index=i, timestamp=0.1 * i, T_world_cam=pose(np.eye(3), [0, 0, i]),
+                branch=Branch.TWO_VIEW, reason="", ref_index=i, T_ref_cam=np.eye(4), is_keyframe=True, K=K,
+                stats=FrameStats(inliers=2000, scale=1.0, mean_flow_px=5.0, parallax_px=1.0, frame_ms=90.0),
+                view=FrameView.of(image=img, depth=depth, flow=flow, pts_ref=pr, pts_cur=pr + 1.0,
+                                  points_world=rng.normal([0, 0, 20 + i], [5, 1, 5], (5000, 3)),
+                                  point_colors=rng.integers(0, 255, (5000, 3), dtype=np.uint8)),
             )
         )
     return out
@@ -366,9 +403,12 @@ def test_recording_size_per_frame_is_bounded(tmp_path, sample_seq):
 
 
 def test_default_path_never_imports_rerun():
-    mods = ["trianflow_vo.cli.main", "trianflow_vo.observer", "trianflow_vo.viz.rerun_logger", "trianflow_vo.viz.plot", "trianflow_vo.viz.flow_color"]
-    if (REPO / "vo" / "pipeline.py").exists():
-        mods.append("trianflow_vo.pipeline")
+    mods = ["trianflow_vo.cli.main", "trianflow_vo.cli.run_cmd", "trianflow_vo.cli.logs", "trianflow_vo.config",
+            "trianflow_vo.frame", "trianflow_vo.keyframe", "trianflow_vo.observer", "trianflow_vo.backend",
+            "trianflow_vo.runlog", "trianflow_vo.frontend", "trianflow_vo.odometry", "trianflow_vo.pipeline",
+            "trianflow_vo.depth.triangulated", "trianflow_vo.depth.network", "trianflow_vo.io.run_writer",
+            "trianflow_vo.baseline.sparse", "trianflow_vo.viz.rerun_logger", "trianflow_vo.viz.plot",
+            "trianflow_vo.viz.flow_color"]
     code = (
         "import sys, importlib\n"
         f"for m in {mods!r}: importlib.import_module(m)\n"
@@ -376,10 +416,8 @@ def test_default_path_never_imports_rerun():
         "import trianflow_vo.cli.main\n"
         "res = CliRunner().invoke(trianflow_vo.cli.main.main, ['--help'])\n"
         "assert res.exit_code == 0, res.output\n"
-        "import os\n"
-        "if os.path.exists(os.path.join('cli', 'run_cmd.py')):\n"
-        "    res = CliRunner().invoke(trianflow_vo.cli.main.main, ['run', '--help'])\n"
-        "    assert res.exit_code == 0, res.output\n"
+        "res = CliRunner().invoke(trianflow_vo.cli.main.main, ['run', '--help'])\n"
+        "assert res.exit_code == 0, res.output\n"
         "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('rerun', 'rerun_bindings', 'matplotlib'))\n"
         "assert not bad, bad\n"
         "print('ok')\n"
@@ -409,13 +447,13 @@ def check_run_recording(rrd: Path, n_frames: int) -> dict:
 
 
 def test_pipeline_writes_a_recording_with_ground_truth(tmp_path, sample_seq):
-    from trianflow_vo.config import RunConfig
+    from trianflow_vo.config import Config, merge_dict
     from trianflow_vo.pipeline import run
 
     n = 6
-    cfg = RunConfig(seq=sample_seq, out_dir=tmp_path / "run", end=n, rerun=tmp_path / "out.rrd",
-                    gt=sample_seq / "poses.txt")
-    run(cfg)
+    cfg = merge_dict(Config(), {"input": {"end": n},
+                                "output": {"rerun": tmp_path / "out.rrd", "gt": sample_seq / "poses.txt"}}, "test")
+    run(sample_seq, tmp_path / "run", cfg)
     rows = check_run_recording(tmp_path / "out.rrd", n)
     per_frame = (tmp_path / "out.rrd").stat().st_size / n
     print(f"pipeline recording: {per_frame:.0f} bytes per frame over {n} frames")
@@ -430,8 +468,9 @@ def test_pipeline_writes_a_recording_with_ground_truth(tmp_path, sample_seq):
     assert (tmp_path / "run" / "trajectory.png").stat().st_size > 1000
 
 
-def test_run_without_rerun_flags_never_imports_rerun(tmp_path, sample_seq):
-    if (REPO / "cli" / "run_cmd.py").exists():  # the real command line
+@pytest.mark.parametrize("via", ["cli", "library"])
+def test_run_without_rerun_flags_never_imports_rerun(tmp_path, sample_seq, via):
+    if via == "cli":  # the real command line
         call = (
             "from click.testing import CliRunner\n"
             "from trianflow_vo.cli.main import main\n"
@@ -439,12 +478,14 @@ def test_run_without_rerun_flags_never_imports_rerun(tmp_path, sample_seq):
             f"'--out', {str(tmp_path / 'run')!r}])\n"
             "assert res.exit_code == 0, res.output\n"
         )
-    else:
+    else:  # the library entry point, default configuration but for the frames
         call = (
             "from pathlib import Path\n"
-            "from trianflow_vo.config import RunConfig\n"
+            "from trianflow_vo.config import Config, merge_dict\n"
             "from trianflow_vo.pipeline import run\n"
-            f"run(RunConfig(seq=Path({str(sample_seq)!r}), out_dir=Path({str(tmp_path / 'run')!r}), end=3))\n"
+            "cfg = merge_dict(Config(), {'input': {'end': 3}}, 'test')\n"
+            f"s = run(Path({str(sample_seq)!r}), Path({str(tmp_path / 'run')!r}), cfg)\n"
+            "assert s['status'] == 'completed', s\n"
         )
     code = (
         "import sys\n"
@@ -459,8 +500,6 @@ def test_run_without_rerun_flags_never_imports_rerun(tmp_path, sample_seq):
 
 
 def test_cli_run_with_rerun(tmp_path, sample_seq):
-    if not (REPO / "cli" / "run_cmd.py").exists():
-        pytest.skip("cli/run_cmd.py not written yet")
     from click.testing import CliRunner
 
     from trianflow_vo.cli.main import main
@@ -474,8 +513,6 @@ def test_cli_run_with_rerun(tmp_path, sample_seq):
 
 
 def test_cli_run_spawn_without_display_is_one_line(tmp_path, sample_seq, monkeypatch):
-    if not (REPO / "cli" / "run_cmd.py").exists():
-        pytest.skip("cli/run_cmd.py not written yet")
     from click.testing import CliRunner
 
     from trianflow_vo.cli.main import main

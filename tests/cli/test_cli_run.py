@@ -17,6 +17,7 @@ import pytest
 from click.testing import CliRunner
 
 from trianflow_vo.cli.main import main
+from trianflow_vo.geometry.se3 import rodrigues
 
 SMALL_HW = (128, 384)  # non-KITTI working size: used as is (multiples of 64, long side < 832)
 
@@ -29,6 +30,8 @@ def _small_intrinsics() -> str:
 
 
 INTR = _small_intrinsics()
+K_SMALL = np.array([[float(INTR.split(",")[0]), 0.0, float(INTR.split(",")[2])],
+                    [0.0, float(INTR.split(",")[1]), float(INTR.split(",")[3])], [0.0, 0.0, 1.0]])
 
 
 def write_frames(sample: Path, folder: Path, n: int, step: int = 2, ext: str = ".png") -> list[Path]:
@@ -50,8 +53,29 @@ def truncate(path: Path) -> None:
     path.write_bytes(data[: len(data) // 3])
 
 
+def write_rotating_frames(sample: Path, folder: Path, n: int, yaw_rad: float = 0.006) -> list[Path]:
+    """``n`` views of one sample frame from a camera turning ``yaw_rad`` per frame about its
+    centre (image warped by ``K R K^-1``): flow without parallax, so rotation-only frames."""
+    folder.mkdir(parents=True, exist_ok=True)
+    img = cv2.imread(str(sample / "image_0" / "000010.jpg"), cv2.IMREAD_COLOR)
+    img = cv2.resize(img, (SMALL_HW[1], SMALL_HW[0]), interpolation=cv2.INTER_AREA)
+    out = []
+    for i in range(n):
+        Hm = K_SMALL @ rodrigues(np.array([0.0, yaw_rad * i, 0.0])) @ np.linalg.inv(K_SMALL)
+        warped = cv2.warpPerspective(img, Hm, (SMALL_HW[1], SMALL_HW[0]), flags=cv2.INTER_LINEAR,
+                                     borderMode=cv2.BORDER_REFLECT)
+        p = folder / f"{i:06d}.png"
+        assert cv2.imwrite(str(p), warped)
+        out.append(p)
+    return out
+
+
 def invoke(*args: str):
     return CliRunner().invoke(main, [str(a) for a in args])
+
+
+def warning_lines(output: str) -> list[str]:
+    return [ln for ln in output.splitlines() if ln.startswith("warning:")]
 
 
 def assert_user_error(result, *needles: str, code: int | None = None) -> str:
@@ -159,7 +183,8 @@ def test_intrinsics_and_calib_together(sample_seq, tmp_path):
     calib = tmp_path / "cam.txt"
     calib.write_text("100 100 64 64\n")
     r = invoke("run", tmp_path / "seq", "--intrinsics", INTR, "--calib", calib, "--out", tmp_path / "out")
-    assert_user_error(r, "--intrinsics", "--calib", code=2)
+    # the conflict can come from --config/--set as well as the flags: the message names both config keys
+    assert_user_error(r, "intrinsics", "calibration file", "input.intrinsics", "input.calib", code=2)
 
 
 def test_video_that_cannot_be_opened(tmp_path):
@@ -224,6 +249,10 @@ def test_truncated_image_in_the_middle_is_skipped(sample_seq, tmp_path, ext):
     assert doc["skipped"][0]["frame"] == 2
     assert doc["skipped"][0]["source"] == str(files[2])
     assert "truncated" in doc["skipped"][0]["reason"] or "decode" in doc["skipped"][0]["reason"]
+    # and in run.json's warnings, grouped by kind
+    group = doc["warnings"]["skipped-frame"]
+    assert group["count"] == 1 and group["items"][0]["frame"] == 2
+    assert group["items"][0]["message"] == warnings[0].removeprefix("warning: ")
 
 
 def test_mixed_sizes_warn_and_skip(sample_seq, tmp_path):
@@ -266,3 +295,67 @@ def test_default_out_dir_under_runs(sample_seq, tmp_path, monkeypatch):
     for d in runs:
         assert d.name.startswith("seq-")
         assert len((d / "poses.txt").read_text().splitlines()) == 2
+
+
+# --------------------------------------------------------------------------- how warnings are printed
+
+
+def test_per_frame_warnings_are_one_summary_line_per_kind(sample_seq, tmp_path):
+    """A skipped file is a warning at once; rotation-only frames are one line at the end."""
+    seq = tmp_path / "seq"
+    files = write_rotating_frames(sample_seq, seq, 8)
+    truncate(files[3])
+    out = tmp_path / "out"
+    r = invoke("run", seq, "--intrinsics", INTR, "--out", out, "--no-plot")
+    assert r.exit_code == 0, r.output
+    lines = r.output.splitlines()
+    warnings = warning_lines(r.output)
+    assert len(warnings) == 2, r.output
+    assert warnings[0].startswith(f"warning: {files[3]}: skipped (")
+    assert warnings[1] == ("warning: 6 frames solved by rotation only: frame 1, 2, 4, 5, 6, ... "
+                           "(all in run.json, frames.tsv)"), r.output
+    # the skip when it happens, the summary after the last frame, before the closing summary
+    summary = next(i for i, ln in enumerate(lines) if ln.startswith("7 frames (1 skipped)"))
+    assert lines.index(warnings[0]) < lines.index(warnings[1]) < summary
+    assert "rotation-only 6" in lines[summary]
+    assert not any(ln.startswith("frame ") for ln in lines)  # no line per frame without -v
+    doc = json.loads((out / "run.json").read_text())
+    assert doc["branch_counts"]["rotation"] == 6
+    rot = doc["warnings"]["rotation-only"]
+    assert rot["count"] == 6 and [i["frame"] for i in rot["items"]] == [1, 2, 4, 5, 6, 7]  # all kept
+    assert all("rotation only" in i["message"] for i in rot["items"])
+    assert doc["warnings"]["skipped-frame"]["count"] == 1
+
+
+def test_verbose_shows_each_frame_and_quiet_none(sample_seq, tmp_path):
+    seq = tmp_path / "seq"
+    write_rotating_frames(sample_seq, seq, 4)
+    r = invoke("run", seq, "--intrinsics", INTR, "--out", tmp_path / "v", "--no-plot", "-v")
+    assert r.exit_code == 0, r.output
+    per_frame = [ln for ln in r.output.splitlines() if ln.startswith("frame ")]
+    assert [ln.split(":")[0] for ln in per_frame] == ["frame 1", "frame 2", "frame 3"], r.output
+    assert all(": rotation (" in ln and "no depth yet" in ln for ln in per_frame)
+    assert len(warning_lines(r.output)) == 1  # still summarised once
+    r = invoke("run", seq, "--intrinsics", INTR, "--out", tmp_path / "q", "--no-plot", "-q")
+    assert r.exit_code == 0, r.output
+    assert r.output.strip() == f"wrote {tmp_path / 'q'}"
+    assert json.loads((tmp_path / "q" / "run.json").read_text())["warnings"]["rotation-only"]["count"] == 3
+
+
+def test_routine_branches_only_with_verbose(sample_seq, tmp_path):
+    """A static camera is normal operation: no warning, and a line per frame only with -v."""
+    seq = tmp_path / "seq"
+    files = write_frames(sample_seq, seq, 1)
+    for i in (1, 2):
+        (seq / f"{i:06d}.png").write_bytes(files[0].read_bytes())
+    r = invoke("run", seq, "--intrinsics", INTR, "--out", tmp_path / "a", "--no-plot")
+    assert r.exit_code == 0, r.output
+    assert warning_lines(r.output) == [], r.output
+    assert not any(ln.startswith("frame ") for ln in r.output.splitlines()), r.output
+    assert "camera static" not in r.output and "static 2" in r.output
+    r = invoke("run", seq, "--intrinsics", INTR, "--out", tmp_path / "b", "--no-plot", "-v")
+    assert r.exit_code == 0, r.output
+    assert warning_lines(r.output) == []
+    per_frame = [ln for ln in r.output.splitlines() if ln.startswith("frame ")]
+    assert len(per_frame) == 2 and all(": identity (" in ln and "camera static" in ln for ln in per_frame), r.output
+    assert json.loads((tmp_path / "b" / "run.json").read_text())["warnings"] == {}
