@@ -29,3 +29,6 @@ def user_errors():
     except OSError as exc:  # permission denied, is a directory, disk full, ...
         where = f"{exc.filename}: " if exc.filename else ""
         raise click.ClickException(f"{where}{exc.strerror or exc}") from None
+    except MemoryError:
+        raise click.ClickException("out of memory; choose a smaller working size (--size) or fewer threads") \
+            from None

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
 import sys
-import time
 from datetime import datetime
 from pathlib import Path
 
@@ -26,37 +26,61 @@ def _parse_intrinsics(ctx, param, value):
         raise click.BadParameter(exc.message) from None
 
 
-class Progress(Observer):
-    """One status line on stderr: frames done, frames/s, branch counts."""
+def _hms(seconds: float) -> str:
+    s = int(round(seconds))
+    h, rem = divmod(s, 3600)
+    m, sec = divmod(rem, 60)
+    return f"{h}:{m:02d}:{sec:02d}" if h else f"{m}:{sec:02d}"
 
-    def __init__(self, enabled: bool):
+
+class Progress(Observer):
+    """One status line on stderr: frames read (processed and skipped) of the total, frames/s, ETA,
+    branch counts. The counts and the frame rate come from the run's
+    :class:`~trianflow_vo.io.run_writer.RunClock`, the same that ``run.json`` and the summary use."""
+
+    def __init__(self, enabled: bool, clock=None):
+        from trianflow_vo.io.run_writer import RunClock
+
+        self.clock = clock if clock is not None else RunClock()
         self.total = 0
         self.enabled = enabled and sys.stderr.isatty()
         self.plain = enabled and not self.enabled
         self.counts: dict[str, int] = {}
-        self.t0 = time.perf_counter()
-        self.n = 0
+        self._printed = -1  # frames read when the plain line was last printed
 
     def on_start(self, total: int) -> None:
         self.total = total
-        self.t0 = time.perf_counter()
+
+    def line(self) -> str:
+        c = self.clock
+        done = c.done
+        text = f"{done}/{self.total} frames"
+        if c.skipped:
+            text += f" ({c.skipped} skipped)"
+        fps = c.fps
+        text += f"  {fps:5.1f} fps" if fps is not None else "    -- fps"
+        eta = c.eta_s()
+        if eta is not None and done < self.total:
+            text += f"  ETA {_hms(eta)}"
+        branches = " ".join(f"{k} {v}" for k, v in self.counts.items() if k != "init")
+        return f"{text}  {branches}".rstrip()
+
+    def _draw(self, final: bool = False) -> None:
+        done = self.clock.done
+        if self.enabled:
+            frac = min(done / max(self.total, 1), 1.0)
+            bar = "#" * int(24 * frac) + "-" * (24 - int(24 * frac))
+            click.echo(f"\r[{bar}] {self.line()}\x1b[K", nl=False, err=True)
+        elif self.plain and (final or done % 50 == 0 or done == self.total) and done != self._printed:
+            click.echo(self.line(), err=True)
+            self._printed = done
 
     def on_frame(self, rec) -> None:
-        self.n += 1
         self.counts[rec.branch] = self.counts.get(rec.branch, 0) + 1
-        if not (self.enabled or self.plain):
-            return
-        fps = self.n / max(time.perf_counter() - self.t0, 1e-9)
-        branches = " ".join(f"{k} {v}" for k, v in self.counts.items() if k != "init")
-        line = f"{self.n}/{self.total} frames  {fps:5.1f} fps  {branches}"
-        if self.enabled:
-            frac = self.n / max(self.total, 1)
-            bar = "#" * int(24 * frac) + "-" * (24 - int(24 * frac))
-            click.echo(f"\r[{bar}] {line}\x1b[K", nl=False, err=True)
-        elif self.n % 50 == 0 or self.n == self.total:
-            click.echo(line, err=True)
+        self._draw()
 
     def close(self, interrupted: bool = False) -> None:
+        self._draw(final=True)  # skipped frames after the last processed one count too
         if self.enabled:
             click.echo("", err=True)
 
@@ -97,19 +121,32 @@ def build_config(config_file: str | None, overrides: tuple[str, ...], shortcuts:
 
 
 def default_out_dir(seq: Path) -> Path:
+    """Create and return a new folder ``runs/<sequence name>-<date-time>[-n]`` (atomic: two runs
+    started at once get two folders)."""
+    from trianflow_vo.io.run_dir import make_unique_dir
+
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-    out_dir = Path("runs") / f"{Path(seq).resolve().name or 'seq'}-{stamp}"
-    n, base = 1, out_dir
-    while out_dir.exists():
-        n += 1
-        out_dir = Path(f"{base}-{n}")
-    return out_dir
+    return make_unique_dir(Path("runs"), f"{Path(seq).resolve().name or 'seq'}-{stamp}")
+
+
+def _remove_if_empty(folder: Path | None, parent_existed: bool = True) -> None:
+    """Remove a default run folder the run never wrote into (and ``runs/`` if this run made it)."""
+    if folder is None:
+        return
+    with contextlib.suppress(OSError):
+        folder.rmdir()
+        if not parent_existed:
+            folder.parent.rmdir()
 
 
 @click.command("run")
 @click.argument("seq", type=click.Path(path_type=Path))
 @click.option("--out", "out_dir", type=click.Path(path_type=Path), default=None,
-              help="Output folder (default: a new folder under ./runs/).")
+              help="Output folder (default: a new folder under ./runs/). A folder holding an earlier run is "
+                   "refused unless --overwrite; one in use by a running run always is.")
+@click.option("--overwrite", is_flag=True,
+              help="Replace the earlier run in --out (its files only: poses.txt, run.json, trajectory.png, ...; "
+                   "other files are kept).")
 @click.option("--config", "config_file", metavar="FILE|PRESET", default=None,
               help="Configuration: a YAML file, a run's run.json or config.yaml (reproduces that run), "
                    "or a shipped preset (default, kitti, indoor). See configs/README.md.")
@@ -120,7 +157,8 @@ def default_out_dir(seq: Path) -> Path:
 @click.option("--end", type=int, default=None, help="Stop before this source frame index [input.end].")
 @click.option("--size", callback=parse_size, default=None, metavar="HxW",
               help="Working resolution [input.size] (default 256x832 for KITTI-like frames, else long side <= 832, "
-                   "multiples of 64).")
+                   "multiples of 64; at most 4096 per side, and refused when the per-frame buffers would not "
+                   "fit in the available memory).")
 @click.option("--intrinsics", callback=_parse_intrinsics, default=None, metavar="FX,FY,CX,CY",
               help="Camera intrinsics at the source resolution, overriding the sequence's calibration "
                    "[input.intrinsics].")
@@ -151,13 +189,13 @@ def default_out_dir(seq: Path) -> Path:
               help="Ground-truth poses, drawn beside the estimate in trajectory.png and the Rerun recording "
                    "[output.gt].")
 @click.option("--rerun", "rerun_path", type=click.Path(path_type=Path), default=None,
-              help="Write a Rerun recording (.rrd) [output.rerun].")
+              help="Write a Rerun recording (.rrd) [output.rerun]; its folder must exist (or be --out).")
 @click.option("--rerun-spawn", is_flag=True, default=None, help="Stream to a live Rerun viewer [output.rerun_spawn].")
 @click.option("--no-plot", is_flag=True, help="Do not write trajectory.png [output.plot=false].")
 @click.option("-v", "--verbose", count=True, help="Log routine steps too (PnP on small parallax, static camera); "
                                                  "-vv for debugging.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar and no warnings (errors only).")
-def run(seq, out_dir, config_file, overrides, no_plot, verbose, quiet, **shortcuts):
+def run(seq, out_dir, config_file, overrides, no_plot, verbose, quiet, overwrite, **shortcuts):
     """Estimate the camera trajectory of SEQ.
 
     SEQ is a KITTI odometry sequence folder (image_0/ or image_2/ with calib.txt),
@@ -167,8 +205,12 @@ def run(seq, out_dir, config_file, overrides, no_plot, verbose, quiet, **shortcu
     line), trajectory.tum, frames.tsv, run.json, config.yaml and trajectory.png
     to the output folder, frame by frame: an interrupted run keeps what it did.
     `--config OUT/config.yaml` (or OUT/run.json) repeats a run exactly.
+    Ctrl-C and SIGTERM stop the run alike: the outputs are closed with status
+    'interrupted' in run.json; exit status 130 (Ctrl-C) or 143 (SIGTERM).
     """
     from trianflow_vo.cli.logs import setup_logging
+    from trianflow_vo.io.run_dir import InterruptSignals, exit_code, signal_name
+    from trianflow_vo.io.run_writer import RunClock
     from trianflow_vo.pipeline import run as run_pipeline
 
     setup_logging(-1 if quiet else verbose)
@@ -177,19 +219,35 @@ def run(seq, out_dir, config_file, overrides, no_plot, verbose, quiet, **shortcu
     if config.input.intrinsics is not None and config.input.calib is not None:
         raise click.UsageError("give either intrinsics or a calibration file, not both "
                                "(input.intrinsics / input.calib)")
-    out_dir = out_dir or default_out_dir(seq)
-    with user_errors():
-        progress = Progress(enabled=not quiet)  # closed by the pipeline, like every observer
+    created = None
+    runs_existed = Path("runs").is_dir()
+    with InterruptSignals():  # Ctrl-C and SIGTERM alike: close the outputs as 'interrupted'
         try:
-            summary = run_pipeline(seq, out_dir, config, observers=[progress])
-        except KeyboardInterrupt:
-            click.echo(f"interrupted: the trajectory so far is in {out_dir}", err=True)
-            sys.exit(130)
+            with user_errors():
+                if out_dir is None:
+                    out_dir = created = default_out_dir(seq)
+                clock = RunClock()
+                progress = Progress(enabled=not quiet, clock=clock)  # closed by the pipeline, like every observer
+                summary = run_pipeline(seq, out_dir, config, observers=[progress], overwrite=overwrite,
+                                       clock=clock)
+        except KeyboardInterrupt as exc:
+            _remove_if_empty(created, runs_existed)
+            name = signal_name(exc)
+            how = "interrupted" if name == "SIGINT" else f"interrupted ({name})"
+            where = f"the trajectory so far is in {out_dir}" if out_dir is not None and out_dir.is_dir() \
+                else "nothing was written"
+            click.echo(f"{how}: {where}", err=True)
+            sys.exit(exit_code(exc))  # 130 for Ctrl-C (SIGINT), 143 for SIGTERM
+        except BaseException:
+            _remove_if_empty(created, runs_existed)  # a default folder the run never wrote into
+            raise
     c = summary["branch_counts"]
     if not quiet:
+        fps = summary["fps"]
         click.echo(
             f"{summary['frames_processed']} frames ({summary['frames_skipped']} skipped) in "
-            f"{summary['elapsed_s']:.1f} s, {summary['fps']:.1f} frames/s; two-view {c['two-view']}, pnp {c['pnp']}, "
+            f"{summary['elapsed_s']:.1f} s, {'n/a' if fps is None else f'{fps:.1f}'} frames/s; "
+            f"two-view {c['two-view']}, pnp {c['pnp']}, "
             f"rotation-only {c['rotation']}, static {c['identity']}, failed {c['failed']}"
         )
     click.echo(f"wrote {out_dir}")

@@ -32,6 +32,29 @@ def working_size(height: int, width: int, override: tuple[int, int] | None = Non
     return h, w
 
 
+MIN_FOCAL_PX = 1.0  # below one pixel the field of view is ~180 degrees even for a tiny image
+
+
+def intrinsics_problem(K: np.ndarray, size_hw: tuple[int, int]) -> str | None:
+    """Why ``K`` ``(3, 3)`` cannot be the pinhole intrinsics of ``size_hw`` ``(H, W)`` images, or None.
+
+    Refused: non-finite entries; a focal length below :data:`MIN_FOCAL_PX` (zero or
+    negative included); a principal point more than one image size outside the image,
+    i.e. ``cx`` outside ``[-W, 2W]`` or ``cy`` outside ``[-H, 2H]``.
+    """
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+        return "the matrix is not a finite 3x3 K"
+    H, W = (int(v) for v in size_hw)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if fx < MIN_FOCAL_PX or fy < MIN_FOCAL_PX:
+        return f"focal lengths must be at least {MIN_FOCAL_PX:g} pixel, got fx={fx:g}, fy={fy:g}"
+    if not (-W <= cx <= 2 * W) or not (-H <= cy <= 2 * H):
+        return (f"principal point (cx, cy) = ({cx:g}, {cy:g}) is more than one image size outside the "
+                f"{W}x{H} image (allowed: cx in [{-W}, {2 * W}], cy in [{-H}, {2 * H}])")
+    return None
+
+
 def scale_intrinsics(K: np.ndarray, src_hw: tuple[int, int], dst_hw: tuple[int, int]) -> np.ndarray:
     """Intrinsics ``(3, 3)`` of an image resized from ``src_hw`` to ``dst_hw``.
 

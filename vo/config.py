@@ -84,10 +84,15 @@ def _opt(default: Any, help: str, *, range: _Range | None = None, check: Callabl
                                             "sep": sep, "form": form})
 
 
+MAX_SIZE_SIDE = 4096  # largest working height or width (input.size)
+
+
 def _multiples_of_64(hw: tuple[int, int]) -> str | None:
-    if all(v > 0 and v % 64 == 0 for v in hw):
-        return None
-    return f"{_show(list(hw))} is not two positive multiples of 64 (h, w), e.g. [256, 832] or '256x832'"
+    if not all(v > 0 and v % 64 == 0 for v in hw):
+        return f"{_show(list(hw))} is not two positive multiples of 64 (h, w), e.g. [256, 832] or '256x832'"
+    if max(hw) > MAX_SIZE_SIDE:
+        return f"{_show(list(hw))} is too large: the working size is at most {MAX_SIZE_SIDE} per side (h, w)"
+    return None
 
 
 def _positive_focal(k: tuple[float, float, float, float]) -> str | None:

@@ -16,20 +16,24 @@ progress, Rerun). See ARCHITECTURE.md.
 from __future__ import annotations
 
 import logging
+import os
+import signal
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import cv2
 from trianflow_vo.backend import Backend, Trajectory, make_backend
-from trianflow_vo.camera import PinholeCamera, working_size
+from trianflow_vo.camera import PinholeCamera, intrinsics_problem, working_size
 from trianflow_vo.config import Config, resolve_scale_source, write_config_yaml
 from trianflow_vo.depth.base import DepthPrior
-from trianflow_vo.errors import InputError
+from trianflow_vo.errors import ConfigError, InputError
 from trianflow_vo.flow.base import FlowSource
 from trianflow_vo.frame import Branch, FrameResult
 from trianflow_vo.frames import FrameSkip
-from trianflow_vo.io.run_writer import RunWriter
+from trianflow_vo.io.calib import how_to_give_intrinsics
+from trianflow_vo.io.run_dir import InterruptSignals, open_run_dir, signal_name
+from trianflow_vo.io.run_writer import RunClock, RunWriter, write_failed_status
 from trianflow_vo.io.sequence import Prefetcher, open_sequence
 from trianflow_vo.observer import Observer
 from trianflow_vo.odometry import Odometry
@@ -76,31 +80,60 @@ def run(
     observers: Iterable[Observer] = (),
     odometry_factory: MakeOdometry | None = None,
     backend: Backend | None = None,
+    *,
+    overwrite: bool = False,
+    clock: RunClock | None = None,
 ) -> dict:
     """Process the sequence ``seq`` and write the run folder ``out_dir``; returns the ``run.json`` summary.
 
     Frames are streamed (decoded one ahead in a background thread) and every pose
     is written as soon as it is known. ``observers`` get the hooks of
     :class:`~trianflow_vo.observer.Observer`. Degraded frames and skipped files
-    are logged (logger ``trianflow_vo``) and grouped by kind in ``run.json``. On
-    KeyboardInterrupt the outputs are closed with ``status: interrupted`` and the
-    interrupt re-raised.
+    are logged (logger ``trianflow_vo``) and grouped by kind in ``run.json``.
+
+    Everything that can be checked is checked before ``out_dir`` is touched (the
+    sequence, intrinsics, working size and its memory, the Rerun path). Then the
+    folder is created and locked (:func:`~trianflow_vo.io.run_dir.open_run_dir`: a
+    folder held by a live run is refused, one with an earlier run's files too unless
+    ``overwrite``). From there on every exit writes the final ``status`` of
+    ``run.json``: ``completed``; ``interrupted`` on Ctrl-C or SIGTERM (both raise
+    :class:`~trianflow_vo.io.run_dir.Interrupted`, a ``KeyboardInterrupt``, re-raised
+    after closing); ``failed`` with a one-line ``error`` otherwise (re-raised).
 
     ``odometry_factory(camera, config)`` replaces the TrianFlow odometry with another
     object whose ``step(frame_index, timestamp, image, timer)`` returns a
     :class:`~trianflow_vo.frame.FrameResult` (e.g. the sparse baseline,
     :mod:`trianflow_vo.baseline.sparse`) and that has ``describe()``. ``backend``
-    replaces the one ``backend.kind`` names.
+    replaces the one ``backend.kind`` names. ``clock`` (a
+    :class:`~trianflow_vo.io.run_writer.RunClock`) is the run's frame counter and
+    frame rate, shared with e.g. a progress display.
     """
-    seq, out_dir = Path(seq), Path(out_dir)
+    with InterruptSignals() as signals:
+        return _run(Path(seq), Path(out_dir), config, list(observers), odometry_factory, backend, overwrite,
+                    clock or RunClock(), signals)
+
+
+def _run(seq: Path, out_dir: Path, config: Config, observers: list[Observer], odometry_factory, backend,
+         overwrite: bool, clock: RunClock, signals: InterruptSignals) -> dict:
     cv2.setNumThreads(config.runtime.threads)
     inp = config.input
+    # -- checks before the folder is touched ------------------------------------------------------------
+    rerun_wanted = config.output.rerun is not None or config.output.rerun_spawn
+    if rerun_wanted:
+        from trianflow_vo.viz.rerun_logger import check_rerun_output
+
+        check_rerun_output(config.output.rerun, config.output.rerun_spawn, out_dir)
     reader = open_sequence(seq, intrinsics=inp.intrinsics, calib=inp.calib, start=inp.start, end=inp.end,
                            stride=inp.stride)
     H, W = reader.image_size
+    problem = intrinsics_problem(reader.K, (H, W))
+    if problem is not None:
+        raise InputError(f"implausible intrinsics from {reader.K_source}: {problem}; "
+                         f"{how_to_give_intrinsics()}", seq)
     h, w = working_size(H, W, inp.size)
     if h <= 0 or w <= 0:
         raise InputError(f"bad working size {h}x{w}")
+    check_memory((h, w), (H, W))
     camera = PinholeCamera(reader.K, (H, W)).resized((h, w))
     if resolve_scale_source(config) == "triangulation" and config.depth.model is not None:
         log.warning("depth.model is not used with scale.source=triangulation (scale from carried depth)")
@@ -124,25 +157,36 @@ def run(
         "backend": backend.describe(),
         "pose_convention": "poses.txt: T_world_cam (camera-to-world), first frame identity, KITTI 3x4 row-major",
     }
-    writer = RunWriter(out_dir, info, runlog)
-    write_config_yaml(config, out_dir / "config.yaml")
-    extra = list(observers)
-    if config.output.rerun is not None or config.output.rerun_spawn:
-        from trianflow_vo.viz.rerun_logger import RerunObserver
-
-        extra.append(RerunObserver(path=config.output.rerun, spawn=config.output.rerun_spawn,
-                                   gt_T_world_cam=None if gt is None else gt.poses,
-                                   gt_frames=None if gt is None else gt.frames))
-    all_obs: list[Observer] = [writer, *extra]
-    for ob in all_obs:
-        ob.on_start(len(reader))
+    # -- the folder: from here on every exit writes run.json's final status -----------------------------
+    lock = open_run_dir(out_dir, overwrite=overwrite)
+    writer: RunWriter | None = None
+    extra: list[Observer] = list(observers)
+    all_obs: list[Observer] = []
     trajectory = Trajectory()
-    interrupted, error = False, None
+    interrupted, error, signame = False, None, None
     try:
+        writer = RunWriter(out_dir, info, runlog, clock=clock)
+        try:
+            write_config_yaml(config, out_dir / "config.yaml")
+        except OSError as exc:  # a full disk fails at close, without the file name
+            if exc.filename:
+                raise
+            raise OSError(exc.errno, exc.strerror, str(out_dir / "config.yaml")) from None
+        if rerun_wanted:
+            from trianflow_vo.viz.rerun_logger import RerunObserver
+
+            extra.append(RerunObserver(path=config.output.rerun, spawn=config.output.rerun_spawn,
+                                       gt_T_world_cam=None if gt is None else gt.poses,
+                                       gt_frames=None if gt is None else gt.frames))
+        all_obs = [writer, *extra]
+        for ob in all_obs:
+            ob.on_start(len(reader))
+        clock.start(len(reader))  # the frame rate counts from the first frame read
         with Prefetcher(reader, depth=2) as frames:
             t_prev = time.perf_counter()
             for item in frames:
                 if isinstance(item, FrameSkip):
+                    clock.frame_skipped()
                     writer.skip(item.index, item.source, item.reason)
                     runlog.warn("skipped-frame", f"{item.source}: skipped ({item.reason})", frame=item.index)
                     continue
@@ -150,31 +194,125 @@ def run(
                 t_prev = time.perf_counter()
                 _report(result, runlog)
                 trajectory.add(result)
+                clock.frame_done()
                 for ob in all_obs:
                     ob.on_frame(result)
                 if result.is_keyframe:
                     _revise(backend.add_keyframe(odo.keyframe, result), trajectory, odo, all_obs)
+        if reader.shortfall is not None:  # the video ended before the frame count its container states
+            runlog.warn("truncated-input", reader.shortfall.message)
         _revise(backend.finish(), trajectory, odo, all_obs)
         if writer.n_frames < 2:
             raise InputError(f"fewer than two usable frames ({writer.n_frames} processed, "
                              f"{len(writer.skipped)} skipped)", seq)
-    except KeyboardInterrupt:
-        interrupted = True
+    except KeyboardInterrupt as exc:
+        interrupted, signame = True, signal_name(exc)
         raise
-    except Exception as exc:  # keep what was written; say the run failed
-        error = f"{type(exc).__name__}: {exc}"
+    except BaseException as exc:  # keep what was written; say the run failed
+        error = failure_reason(exc)
         raise
     finally:
-        for ob in extra:
+        with signals.deferred():  # a second Ctrl-C must not lose the final status
             try:
-                ob.close(interrupted=interrupted or error is not None)
-            except Exception as exc:  # an observer failing must not lose the trajectory
-                runlog.warn("observer", f"observer {type(ob).__name__} failed to close: {exc}")
-        if config.output.plot and len(trajectory.entries) >= 2:
-            _plot(trajectory, gt, out_dir / "trajectory.png", seq.name, runlog)
-        runlog.log_summary()
-        writer.close(interrupted=interrupted, error=error)
+                _finish(writer, extra, trajectory, gt, config, out_dir, seq, runlog, info, interrupted, error,
+                        signame)
+            finally:
+                lock.release()
+        if signals.pending is not None and not interrupted:
+            log.warning(f"{signal.Signals(signals.pending).name} received while the outputs were being "
+                        "closed; they were closed first")
     return writer.summary()
+
+
+def _finish(writer, extra, trajectory, gt, config, out_dir, seq, runlog, info, interrupted, error, signame):
+    """Close observers, plot, write the final run.json; a failure here never hides the run's own error."""
+    stopped = interrupted or error is not None
+    for ob in extra:
+        try:
+            ob.close(interrupted=stopped)
+        except Exception as exc:  # an observer failing must not lose the trajectory
+            runlog.warn("observer", f"observer {type(ob).__name__} failed to close: {exc}")
+    if config.output.plot and len(trajectory.entries) >= 2:
+        _plot(trajectory, gt, out_dir / "trajectory.png", seq.name, runlog)
+    runlog.log_summary()
+    if writer is None:  # the writer itself could not start: still leave a final status
+        write_failed_status(out_dir, info, error, signame)
+        return
+    try:
+        writer.close(interrupted=interrupted, error=error, signal=signame)
+    except Exception as exc:
+        if error is None and not interrupted:
+            raise
+        log.error(f"could not write the final run.json: {failure_reason(exc)}")
+
+
+def failure_reason(exc: BaseException) -> str:
+    """One line for ``run.json``'s ``error``: the exception type and message, an OSError with its file."""
+    if isinstance(exc, OSError) and exc.filename:
+        msg = f"{exc.filename}: {exc.strerror or exc}"
+    else:
+        msg = str(exc)
+    line = " ".join(msg.split()) or type(exc).__name__
+    return f"{type(exc).__name__}: {line}"
+
+
+# bytes of per-frame buffers per working pixel: flow fw/bw (float32, 2 channels: 16 B), prepared
+# images, masks, carried depth and weight, DIS pyramids; measured ~150 B/px on the KITTI sample
+# (peak RSS 108 MB at 256x832, 207 MB at 512x1664, 602 MB at 1024x3328), rounded up
+BYTES_PER_WORKING_PIXEL = 160
+FRAMES_IN_FLIGHT = 3  # decoded source frames held at once: the one processed and two prefetched
+
+
+def memory_needed(size_hw: tuple[int, int], source_hw: tuple[int, int]) -> int:
+    """Rough bytes the per-frame buffers need: ``160 * h * w`` for the working size plus
+    ``3 * H * W * 3`` for the decoded colour source frames in flight."""
+    h, w = size_hw
+    H, W = source_hw
+    return BYTES_PER_WORKING_PIXEL * h * w + FRAMES_IN_FLIGHT * H * W * 3
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to this process (``MemAvailable``, capped by a cgroup v2/v1 limit),
+    or None when unknown."""
+    avail = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                avail = int(line.split()[1]) * 1024
+                break
+    except (OSError, ValueError, IndexError):
+        pass
+    if avail is None:
+        try:
+            avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (AttributeError, ValueError, OSError):
+            avail = None
+    for limit_f, used_f in (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+                            ("/sys/fs/cgroup/memory/memory.limit_in_bytes",
+                             "/sys/fs/cgroup/memory/memory.usage_in_bytes")):
+        try:
+            limit = Path(limit_f).read_text().strip()
+            used = int(Path(used_f).read_text().strip())
+        except (OSError, ValueError):
+            continue
+        if limit.isdigit() and int(limit) < (1 << 60):
+            left = max(int(limit) - used, 0)
+            avail = left if avail is None else min(avail, left)
+        break
+    return avail
+
+
+def check_memory(size_hw: tuple[int, int], source_hw: tuple[int, int]) -> None:
+    """ConfigError (``input.size``) when :func:`memory_needed` exceeds :func:`available_memory`."""
+    need = memory_needed(size_hw, source_hw)
+    have = available_memory()
+    if have is not None and need > have:
+        gb = 1024.0 ** 3
+        raise ConfigError(
+            f"working size {size_hw[0]}x{size_hw[1]} (source {source_hw[0]}x{source_hw[1]}) needs about "
+            f"{need / gb:.1f} GiB for the per-frame buffers ({BYTES_PER_WORKING_PIXEL} bytes per working pixel "
+            f"+ {FRAMES_IN_FLIGHT} decoded source frames), only {have / gb:.1f} GiB available; "
+            "choose a smaller --size", key="input.size")
 
 
 def _step(odo, item, size_hw: tuple[int, int], t_prev: float) -> FrameResult:
