@@ -1,4 +1,11 @@
-"""``trianflow-vo export``: write flow.onnx and depth.onnx from a checkpoint (or random weights)."""
+"""``trianflow-vo export``: write flow.onnx and depth.onnx from a checkpoint (or random weights).
+
+``--checkpoint`` takes our format (``models/checkpoint.py``) or the TrianFlow authors' own
+``.pth`` (``models/authors.py``): the full layout (``depth_net.*`` +
+``model_pose.model_flow.*``) gives flow.onnx and depth.onnx, the flow-stage layout
+(``fpyramid.*`` + ``pwc_model.*``) flow.onnx only. A bad file is one error line naming it
+(and the first offending tensor), exit status 1, and nothing is written into --out-dir.
+"""
 
 from __future__ import annotations
 
@@ -12,15 +19,19 @@ from trianflow_vo.cli.options import parse_size
 
 @click.command("export")
 @click.option("--checkpoint", type=click.Path(dir_okay=False, path_type=Path),
-              help="Checkpoint file (trianflow-vo format, see models/checkpoint.py).")
+              help="Checkpoint file: trianflow-vo format (models/checkpoint.py) or the TrianFlow "
+                   "authors' .pth (full or flow-only layout, models/authors.py).")
 @click.option("--random-init", is_flag=True, help="Export freshly initialised networks (for testing).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of --random-init and of the check input.")
 @click.option("--size", callback=parse_size, metavar="HxW",
               help="Fixed input size of the exported graphs. Default: the checkpoint's input size "
-                   "(256x832 with --random-init).")
+                   "(256x832 with --random-init and for the authors' checkpoints).")
 @click.option("--out-dir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Directory for flow.onnx and depth.onnx.")
-def export(checkpoint, random_init, seed, size, out_dir):
+@click.option("--trust-checkpoint", is_flag=True,
+              help="Allow torch.load(weights_only=False) for a checkpoint that holds pickled objects "
+                   "(this can run code from the file: only for files you trust).")
+def export(checkpoint, random_init, seed, size, out_dir, trust_checkpoint):
     """Export flow and depth networks to ONNX and check them against torch."""
     if (checkpoint is None) == (not random_init):
         raise click.UsageError("give exactly one of --checkpoint CKPT or --random-init")
@@ -40,19 +51,30 @@ def export(checkpoint, random_init, seed, size, out_dir):
         require_onnxruntime()  # the parity check runs the exported files
         import warnings
 
-        from trianflow_vo.models.checkpoint import DEFAULT_SIZE, checkpoint_from_dict, load_checkpoint, random_checkpoint
+        from trianflow_vo.models.checkpoint import (
+            DEFAULT_SIZE,
+            FORMAT_TAG,
+            checkpoint_from_dict,
+            load_checkpoint,
+            random_checkpoint,
+        )
         from trianflow_vo.models.export import export_checkpoint
 
         if random_init:
             ckpt = checkpoint_from_dict(random_checkpoint(seed, size or DEFAULT_SIZE), "<random-init>")
+            weights_file = None
         else:
-            ckpt = load_checkpoint(checkpoint)
+            ckpt = load_checkpoint(checkpoint, trust_pickle=trust_checkpoint)
+            weights_file = checkpoint.name
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             try:
-                results = export_checkpoint(ckpt, out_dir, size, seed)
+                results = export_checkpoint(ckpt, out_dir, size, seed, weights_file=weights_file)
             except ValueError as exc:  # size not accepted by a network
                 raise click.UsageError(str(exc)) from None
+        if ckpt.source != FORMAT_TAG:
+            click.echo(f"{checkpoint}: {ckpt.source} layout; input {ckpt.channel_order}, resize {ckpt.resize}, "
+                       f"trained at {ckpt.input_size[0]}x{ckpt.input_size[1]}")
         for name, res in results.items():
             worst = max(res["max_abs_diff"].values())
             detail = ", ".join(f"{k} {v:.2e}" for k, v in res["max_abs_diff"].items())

@@ -1,13 +1,18 @@
-"""Monocular depth network: ResNet18 encoder + DispNet-style decoder (monodepth layout).
+"""Monocular depth network: ResNet18 encoder + monodepth2-style decoder, as TrianFlow's
+authors have it (their ``Depth_Model``, commit af3f2bf), so their weights load through
+:mod:`trianflow_vo.models.authors`.
 
-Decoder, from the 1/32 features up to full resolution, at each of five stages:
-3x3 conv (reflection padding) + ELU, bilinear x2 upsampling, concatenation with the
-encoder skip of that resolution (none at full resolution), 3x3 conv + ELU. A 3x3 conv
-+ sigmoid gives a disparity ``sigma`` in (0, 1) at the four finest scales.
+Input: ``(x / 255 - 0.45) / 0.225`` of a BGR image (the exported graph applies it).
+Decoder, from the 1/32 features up to full resolution, at each of five stages
+(channels 256, 128, 64, 32, 16): 3x3 conv (reflection padding) + ELU, **bilinear** x2
+upsampling (``align_corners=False``; monodepth2 uses nearest), concatenation with the
+encoder skip of that resolution (none at full resolution), 3x3 conv (reflection padding)
++ ELU. A 3x3 conv (reflection padding) + sigmoid gives a disparity ``sigma`` in (0, 1)
+at each scale of ``scales``; the authors' configurations have scale 0 only
+(``depth_scale: 1``), and inference uses scale 0.
 
 Depth the monodepth way: ``disp = 1/max_depth + (1/min_depth - 1/max_depth) * sigma``
-and ``depth = 1 / disp``, so depth lies in ``[min_depth, max_depth]`` = [0.1, 100]
-by default.
+and ``depth = 1 / disp``, i.e. ``1 / (0.01 + 9.99 * sigma)`` in [0.1, 100] by default.
 """
 
 from __future__ import annotations
@@ -23,10 +28,10 @@ from trianflow_vo.models.resnet_encoder import ENCODER_CHANNELS, ResNet18Encoder
 
 @dataclass(frozen=True)
 class DepthConfig:
-    """Constructor sizes of :class:`DepthNet` (stored in checkpoints)."""
+    """Constructor sizes of :class:`DepthNet` (stored in checkpoints). Defaults = the authors' network."""
 
     decoder_channels: tuple[int, ...] = (16, 32, 64, 128, 256)  # full res .. 1/16
-    scales: tuple[int, ...] = (0, 1, 2, 3)
+    scales: tuple[int, ...] = (0,)  # the authors' depth_scale: 1
     min_depth: float = 0.1
     max_depth: float = 100.0
 
@@ -65,7 +70,9 @@ class DispDecoder(nn.Module):
         super().__init__()
         if len(dec_channels) != 5:
             raise ValueError("decoder_channels must have 5 entries")
-        self.scales = tuple(scales)
+        self.scales = tuple(int(s) for s in scales)
+        if 0 not in self.scales or len(set(self.scales)) != len(self.scales) or not set(self.scales) <= {0, 1, 2, 3, 4}:
+            raise ValueError(f"scales must be distinct values in 0..4 including 0, got {list(scales)}")
         self.upconv0 = nn.ModuleList()
         self.upconv1 = nn.ModuleList()
         for i in range(4, -1, -1):

@@ -14,10 +14,19 @@ the recorded channel order.
 
 Metadata (``metadata_props``, keys prefixed ``trianflow.``): built by
 :func:`trianflow_vo.nets.onnx_runtime.model_metadata`, the schema the run path
-validates with (``kind``, ``format_version``, ``input_size``, ``channel_order``,
-``normalisation``, ``input_names``, ``output_names``, ``config``, ``version``,
-``resize``; depth adds ``depth_range``). The parity check opens the written file
-the way the run path does (:func:`trianflow_vo.nets.onnx_runtime.open_model`).
+validates with (``kind``, ``format_version``, ``input_size`` (the graph's fixed size),
+``channel_order``, ``normalisation``, ``input_names``, ``output_names``, ``config``,
+``version``, ``resize``; depth adds ``depth_range``). :func:`export_checkpoint` adds
+``train_input_size`` (JSON ``[H, W]``, the size the weights were trained at) and
+``weights`` (JSON ``{"source": ..., "file": ...}``: our format or the authors' layout).
+For the authors' networks: ``BGR``, mean 0 / std 1 (flow) and 0.45 / 0.225 (depth),
+``train_input_size`` [256, 832], ``resize`` ``"linear"`` (cv2.INTER_LINEAR).
+The parity check opens the written file the way the run path does
+(:func:`trianflow_vo.nets.onnx_runtime.open_model`).
+
+:func:`export_checkpoint` writes into a fresh temporary directory beside ``out_dir``
+(inside its parent) and moves the files into ``out_dir`` only when every export and
+parity check succeeded, so a failure leaves nothing half-written there.
 
 Exporter: ``torch.onnx.export(..., dynamo=False)``, the TorchScript exporter, opset 18.
 torch 2.13 defaults to the dynamo exporter; both give a single file with the same
@@ -28,6 +37,9 @@ against ~8 s, which matters for tests and for users. ``EXPORTER`` selects it.
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
 import warnings
 from pathlib import Path
 
@@ -39,7 +51,17 @@ from torch import nn
 from trianflow_vo.models.checkpoint import Checkpoint
 from trianflow_vo.models.depth_net import DepthNet, disp_to_depth
 from trianflow_vo.models.pwc import PWCNet
-from trianflow_vo.nets.onnx_runtime import KEY_DEPTH_RANGE, KINDS, model_metadata, open_model, open_session
+from trianflow_vo.nets.onnx_runtime import (
+    DEFAULT_RESIZE,
+    KEY_DEPTH_RANGE,
+    KINDS,
+    model_metadata,
+    open_model,
+    open_session,
+)
+
+KEY_TRAIN_INPUT_SIZE = "train_input_size"
+KEY_WEIGHTS = "weights"
 
 OPSET = 18
 EXPORTER = "torchscript"  # or "dynamo"
@@ -110,22 +132,27 @@ def export_module(module: nn.Module, args: tuple, path: str | Path, input_names,
     return path
 
 
-def export_flow(net: PWCNet, norm: dict, size, channel_order: str, path) -> Path:
+def export_flow(net: PWCNet, norm: dict, size, channel_order: str, path, resize: str = DEFAULT_RESIZE,
+                extra: dict | None = None) -> Path:
+    """``flow.onnx`` at the fixed ``size`` (H, W); ``extra``: more metadata keys."""
     graph = FlowGraph(net, norm)
     h, w = size
     args = (torch.zeros(1, 3, h, w), torch.zeros(1, 3, h, w))
     ins, outs = list(KINDS["flow"].inputs), graph.output_names()
-    meta = model_metadata("flow", size, channel_order, norm, ins, outs, net.config.to_dict())
+    meta = model_metadata("flow", size, channel_order, norm, ins, outs, net.config.to_dict(), extra,
+                          resize=resize)
     return export_module(graph, args, path, ins, outs, meta)
 
 
-def export_depth(net: DepthNet, norm: dict, size, channel_order: str, path) -> Path:
+def export_depth(net: DepthNet, norm: dict, size, channel_order: str, path, resize: str = DEFAULT_RESIZE,
+                 extra: dict | None = None) -> Path:
+    """``depth.onnx`` at the fixed ``size`` (H, W); ``extra``: more metadata keys."""
     graph = DepthGraph(net, norm)
     h, w = size
     cfg = net.config
     ins, outs = list(KINDS["depth"].inputs), list(KINDS["depth"].outputs)
     meta = model_metadata("depth", size, channel_order, norm, ins, outs, cfg.to_dict(),
-                          {KEY_DEPTH_RANGE: [cfg.min_depth, cfg.max_depth]})
+                          {KEY_DEPTH_RANGE: [cfg.min_depth, cfg.max_depth], **(extra or {})}, resize=resize)
     return export_module(graph, (torch.zeros(1, 3, h, w),), path, ins, outs, meta)
 
 
@@ -160,29 +187,50 @@ def random_images(size, n: int, seed: int) -> list[np.ndarray]:
     return out
 
 
-def export_checkpoint(ckpt: Checkpoint, out_dir: str | Path, size=None, seed: int = 0) -> dict:
+def export_checkpoint(ckpt: Checkpoint, out_dir: str | Path, size=None, seed: int = 0,
+                      weights_file: str | None = None) -> dict:
     """Write ``flow.onnx`` and/or ``depth.onnx`` into ``out_dir`` and check parity.
+
+    Everything is written to a temporary directory inside ``out_dir``'s parent first; the
+    files are moved into ``out_dir`` (created if needed, other files left alone) only when
+    all exports and checks succeeded. ``weights_file``: recorded in the ``weights`` metadata.
 
     Returns ``{name: {"path": str, "max_abs_diff": {output: float}}}``.
     """
     out_dir = Path(out_dir)
     size = tuple(size or ckpt.input_size)
+    for entry in (ckpt.flow, ckpt.depth):
+        if entry is not None:
+            entry.net.check_size(*size)
+    extra = {KEY_TRAIN_INPUT_SIZE: [int(v) for v in ckpt.input_size],
+             KEY_WEIGHTS: {"source": ckpt.source, "file": weights_file}}
     results = {}
     imgs = random_images(size, 2, seed)
-    if ckpt.flow is not None:
-        net = ckpt.flow.net
-        net.check_size(*size)
-        path = export_flow(net, ckpt.flow.normalisation, size, ckpt.channel_order, out_dir / "flow.onnx")
-        sess, _ = open_model(path, "flow")  # the file passes the run path's checks
-        graph = FlowGraph(net, ckpt.flow.normalisation).eval()
-        diffs = parity(graph, path, {"image1": imgs[0], "image2": imgs[1]}, session=sess)
-        results["flow"] = {"path": str(path), "max_abs_diff": diffs}
-    if ckpt.depth is not None:
-        net = ckpt.depth.net
-        net.check_size(*size)
-        path = export_depth(net, ckpt.depth.normalisation, size, ckpt.channel_order, out_dir / "depth.onnx")
-        sess, _ = open_model(path, "depth")
-        graph = DepthGraph(net, ckpt.depth.normalisation).eval()
-        diffs = parity(graph, path, {"image": imgs[0]}, session=sess)
-        results["depth"] = {"path": str(path), "max_abs_diff": diffs}
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.export-", dir=out_dir.parent))
+    try:
+        if ckpt.flow is not None:
+            net = ckpt.flow.net
+            path = export_flow(net, ckpt.flow.normalisation, size, ckpt.channel_order, tmp / "flow.onnx",
+                               ckpt.resize, extra)
+            sess, _ = open_model(path, "flow")  # the file passes the run path's checks
+            graph = FlowGraph(net, ckpt.flow.normalisation).eval()
+            diffs = parity(graph, path, {"image1": imgs[0], "image2": imgs[1]}, session=sess)
+            results["flow"] = {"path": str(out_dir / path.name), "max_abs_diff": diffs}
+        if ckpt.depth is not None:
+            net = ckpt.depth.net
+            path = export_depth(net, ckpt.depth.normalisation, size, ckpt.channel_order, tmp / "depth.onnx",
+                                ckpt.resize, extra)
+            sess, _ = open_model(path, "depth")
+            graph = DepthGraph(net, ckpt.depth.normalisation).eval()
+            diffs = parity(graph, path, {"image": imgs[0]}, session=sess)
+            results["depth"] = {"path": str(out_dir / path.name), "max_abs_diff": diffs}
+        out_dir.mkdir(parents=True, exist_ok=True)
+        for name in results:
+            try:
+                os.replace(tmp / f"{name}.onnx", out_dir / f"{name}.onnx")
+            except OSError:  # out_dir on another file system (e.g. a symlink): copy, then replace
+                shutil.move(str(tmp / f"{name}.onnx"), str(out_dir / f"{name}.onnx"))
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     return results

@@ -1,29 +1,40 @@
-"""PWC-Net optical flow (Sun et al., CVPR 2018), written for export to ONNX.
+"""PWC-Net optical flow (Sun et al., CVPR 2018) as TrianFlow's authors built it, for ONNX export.
 
-Structure, coarse to fine:
+By default the architecture is exactly that of the authors' flow network ("PWC_tf",
+TrianFlow commit af3f2bf), so their weights load through
+:mod:`trianflow_vo.models.authors`. Structure, coarse to fine:
 
-* feature pyramid: per level two 3x3 convolutions (the first with stride 2) and
-  leaky ReLU 0.1; ``pyramid_channels[i]`` channels at 1/2**(i+1) resolution;
-* at every decoded level ``l`` (coarsest first): the second image's features are
-  warped by the upsampled flow of level ``l+1`` (``grid_sample`` bilinear,
-  ``align_corners=True``, zero padding), a cost volume is built with a local search
-  range ``d`` (``(2d+1)**2`` channels, mean over feature channels of shifted
-  products, followed by leaky ReLU), and a flow estimator of five 3x3 convolutions
-  predicts a flow residual from ``[cost volume, features of image 1, upsampled flow]``.
-  Its connections are set by ``estimator_connections``: ``"pairwise"`` (default, the
-  variant of TrianFlow's released model: each convolution sees the outputs of the two
-  before it, and the context network sees the last one) or ``"dense"`` (the original
-  PWC-Net: each convolution sees every earlier output; about twice the arithmetic);
-* at the output level a context network of dilated convolutions (1, 2, 4, 8, 16, 1)
-  refines the flow from the estimator's last features.
+* feature pyramid, shared by both images: per level two 3x3 convolutions (the first
+  with stride 2), each followed by leaky ReLU 0.1; ``pyramid_channels[i]`` channels at
+  1/2**(i+1) resolution (16, 32, 64, 96, 128, 196);
+* at every decoded level ``l`` (6 = coarsest first, down to ``output_level`` = 2): the
+  second image's features are warped by the upsampled flow of level ``l+1``
+  (``grid_sample`` bilinear, ``align_corners=True``, zero padding; the behaviour their
+  model was trained with under torch 1.2), and a cost volume is built with a local search
+  range ``d`` (``(2d+1)**2`` = 81 channels, dy major: mean over feature channels of
+  ``f1 * shifted f2``, zero outside; **no activation** on it). The coarsest level's
+  estimator sees the cost volume alone; the others see ``[cost volume, features of
+  image 1, upsampled flow]`` in that order. An estimator of five 3x3 convolutions (+ leaky
+  ReLU) predicts a flow residual that is added to the upsampled flow (at the coarsest
+  level the prediction is the flow). Its connections are set by
+  ``estimator_connections``: ``"pairwise"`` (default, the authors': x0 = c0(in),
+  x1 = c1(x0), x2 = c2([x0, x1]), x3 = c3([x1, x2]), x4 = c4([x2, x3]),
+  flow = predict([x3, x4]), and x4 is handed on) or ``"dense"`` (the original PWC-Net:
+  each convolution sees the input and every earlier output; about twice the arithmetic);
+* at the output level a context network of dilated convolutions (1, 2, 4, 8, 16, 1;
+  + leaky ReLU) and a predictor refine the flow: its input is ``[flow, x4]`` in that
+  order and its output is added to the flow.
 
-Every flow in this module is in pixels of the resolution of the level it lives at:
-``flows[0]`` (the output level, 1/4 by default) is upsampled by bilinear
-interpolation and multiplied by ``2**output_level`` to give flow in input pixels.
-Upsampling between levels is bilinear (x2 on the grid, x2 on the values).
+Every flow inside this module is in pixels of the resolution of the level it lives
+at. Coarser flow goes up by bilinear x2 (``align_corners=False``) with its values x2.
+The output-level flow (1/4) times ``2**output_level`` (= 4, no x20 anywhere), resized
+bilinearly to ``(H, W)``, is the flow in input pixels (:meth:`PWCNet.full_flow`), what
+the authors' network returns as its first output and what their VO and losses use;
+:meth:`PWCNet.multiscale` gives all four of their outputs.
 
-Input: a pair of normalised images ``(N, 3, H, W)`` with ``H`` and ``W`` multiples of
-``2**len(pyramid_channels)`` (64 by default). The cost volume uses only pad, slice,
+Input: a pair of images ``(N, 3, H, W)``, as the authors feed them: BGR, pixel / 255, no
+mean/std (the exported graph does that scaling itself), with ``H`` and ``W`` multiples
+of ``2**len(pyramid_channels)`` (64 by default). The cost volume uses only pad, slice,
 multiply and mean, so the exported graph needs no custom operator.
 """
 
@@ -38,9 +49,9 @@ from torch import nn
 
 @dataclass(frozen=True)
 class PWCConfig:
-    """Constructor sizes of :class:`PWCNet` (stored in checkpoints). Defaults = the paper."""
+    """Constructor sizes of :class:`PWCNet` (stored in checkpoints). Defaults = the authors' network."""
 
-    pyramid_channels: tuple[int, ...] = (16, 32, 64, 96, 128, 192)
+    pyramid_channels: tuple[int, ...] = (16, 32, 64, 96, 128, 196)
     estimator_channels: tuple[int, ...] = (128, 128, 96, 64, 32)
     context_channels: tuple[int, ...] = (128, 128, 128, 96, 64, 32)
     context_dilations: tuple[int, ...] = (1, 2, 4, 8, 16, 1)
@@ -78,8 +89,8 @@ def warp(feat: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
     xs = torch.arange(w, dtype=feat.dtype, device=feat.device).view(1, 1, w).expand(1, h, w)
     x = xs + flow[:, 0]
     y = ys + flow[:, 1]
-    gx = x * (2.0 / max(w - 1, 1)) - 1.0
-    gy = y * (2.0 / max(h - 1, 1)) - 1.0
+    gx = 2.0 * x / max(w - 1, 1) - 1.0
+    gy = 2.0 * y / max(h - 1, 1) - 1.0
     grid = torch.stack((gx, gy), dim=3)
     return F.grid_sample(feat, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
 
@@ -202,11 +213,12 @@ class PWCNet(nn.Module):
         estimators = []
         # decoded levels, coarsest first: L, L-1, ..., output_level
         self.levels = list(range(len(cfg.pyramid_channels), cfg.output_level - 1, -1))
-        for lvl in self.levels:
-            c_feat = cfg.pyramid_channels[lvl - 1]
-            estimators.append(DenseEstimator(n_cost + c_feat + 2, cfg.estimator_channels, cfg.estimator_connections))
+        for k, lvl in enumerate(self.levels):
+            # the coarsest level sees the cost volume alone, the others [cost, f1, up_flow]
+            cin = n_cost if k == 0 else n_cost + cfg.pyramid_channels[lvl - 1] + 2
+            estimators.append(DenseEstimator(cin, cfg.estimator_channels, cfg.estimator_connections))
         self.estimators = nn.ModuleList(estimators)
-        self.context = ContextNetwork(estimators[-1].out_channels + 2, cfg.context_channels,
+        self.context = ContextNetwork(2 + estimators[-1].out_channels, cfg.context_channels,
                                       cfg.context_dilations)
         self.multiple = 2 ** len(cfg.pyramid_channels)
 
@@ -222,18 +234,15 @@ class PWCNet(nn.Module):
         for k, lvl in enumerate(self.levels):
             f1 = feats1[lvl - 1]
             f2 = feats2[lvl - 1]
-            n, _, h, w = f1.shape
             if flow is None:
-                flow = f1.new_zeros((n, 2, h, w))
-                f2w = f2
+                feat, flow = self.estimators[k](cost_volume(f1, f2, d))
             else:
-                flow = upsample_flow(flow, (h, w))
-                f2w = warp(f2, flow)
-            cost = F.leaky_relu(cost_volume(f1, f2w, d), 0.1)
-            feat, residual = self.estimators[k](torch.cat((cost, f1, flow), dim=1))
-            flow = flow + residual
+                flow = upsample_flow(flow, tuple(f1.shape[2:]))
+                cost = cost_volume(f1, warp(f2, flow), d)
+                feat, residual = self.estimators[k](torch.cat((cost, f1, flow), dim=1))
+                flow = residual + flow
             if lvl == self.config.output_level:
-                flow = flow + self.context(torch.cat((feat, flow), dim=1))
+                flow = flow + self.context(torch.cat((flow, feat), dim=1))
             flows.append(flow)
         return flows[::-1]
 
@@ -246,6 +255,17 @@ class PWCNet(nn.Module):
     def full_flow(self, flow: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
         """Upsample an output-level flow to the input size ``(H, W)``, in input pixels."""
         return upsample_flow(flow, size)
+
+    def multiscale(self, flows: list[torch.Tensor], size: tuple[int, int]) -> list[torch.Tensor]:
+        """The authors' four outputs from :meth:`forward`'s ``flows``: for ``k = 0..3`` the
+        flow of level ``output_level + k`` times ``2**output_level`` (4, whatever the level),
+        bilinearly resized to ``(H / 2**k, W / 2**k)``; so output ``k`` is in pixels of
+        resolution ``1 / 2**k`` and output 0 equals :meth:`full_flow` of ``flows[0]``.
+        (Their losses use these; the VO uses output 0.)"""
+        h, w = size
+        s = float(2 ** self.config.output_level)
+        return [F.interpolate(f * s, size=(h // 2 ** k, w // 2 ** k), mode="bilinear", align_corners=False)
+                for k, f in enumerate(flows[:4])]
 
     def forward_backward(self, img1: torch.Tensor, img2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Forward (1 -> 2) and backward (2 -> 1) flow ``(N, 2, H, W)`` in input pixels.

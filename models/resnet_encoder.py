@@ -3,7 +3,9 @@ be imported beside our torch build.
 
 Layout and parameter names follow the usual ResNet convention (``conv1``, ``bn1``,
 ``layer1`` .. ``layer4``, blocks with ``conv1/bn1/conv2/bn2`` and an optional
-``downsample`` of 1x1 conv + batch norm), so ImageNet-style state dicts map onto it.
+``downsample`` of 1x1 conv + batch norm), so torchvision-style state dicts (the authors'
+``depth_net.encoder.encoder.*``) map onto it name for name; there is no classifier (their
+unused ``fc.*`` head is dropped on import).
 ``forward`` returns the five feature maps a depth decoder needs as skips:
 
 ====== ========= ==========

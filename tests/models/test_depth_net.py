@@ -33,7 +33,7 @@ def test_encoder_shapes_and_parameter_count():
 
 def test_depth_net_scales_and_range():
     torch.manual_seed(0)
-    net = DepthNet().eval()
+    net = DepthNet(DepthConfig(scales=(0, 1, 2, 3))).eval()
     img = torch.randn(2, 3, 64, 192)
     with torch.no_grad():
         out = net(img)
@@ -44,6 +44,23 @@ def test_depth_net_scales_and_range():
         assert torch.all((sigma > 0) & (sigma < 1))
     assert depth.shape == (2, 1, 64, 192)
     assert torch.all((depth >= 0.1) & (depth <= 100.0))
+
+
+def test_default_is_the_authors_decoder():
+    """Scale 0 only (their depth_scale: 1), their channel widths, depth = 1 / (0.01 + 9.99 sigma)."""
+    net = DepthNet().eval()
+    assert net.config.scales == (0,)
+    names = set(net.state_dict())
+    assert {"decoder.dispconv.0.conv.weight", "decoder.upconv0.0.conv.weight"} <= names
+    assert not any(n.startswith("decoder.dispconv.1") for n in names)
+    shapes = {k: tuple(v.shape) for k, v in net.state_dict().items()}
+    assert shapes["decoder.upconv0.0.conv.weight"] == (256, 512, 3, 3)
+    assert shapes["decoder.upconv1.3.conv.weight"] == (32, 96, 3, 3)  # 32 + 64 skip channels
+    assert shapes["decoder.upconv1.4.conv.weight"] == (16, 16, 3, 3)  # no skip at full resolution
+    sigma = torch.tensor([0.0, 0.25, 1.0])
+    assert torch.allclose(disp_to_depth(sigma, 0.1, 100.0), 1.0 / (0.01 + 9.99 * sigma))
+    with pytest.raises(ValueError, match="including 0"):
+        DepthNet(DepthConfig(scales=(1, 2)))
 
 
 def test_custom_depth_range_and_bad_size():

@@ -46,7 +46,9 @@ def exported(tmp_path_factory):
     """One export through the CLI from a saved checkpoint (default architectures)."""
     d = tmp_path_factory.mktemp("export")
     torch.manual_seed(1)
-    ckpt = make_checkpoint(_amplified_pwc(0), DepthNet().eval(), SIZE)
+    # not the defaults (BGR, linear: the authors'), to see that the checkpoint's values are recorded
+    ckpt = make_checkpoint(_amplified_pwc(0), DepthNet().eval(), SIZE, channel_order="RGB",
+                           resize="area-down-linear-up")
     save_checkpoint(d / "ckpt.pt", ckpt)
     result = CliRunner().invoke(main, ["export", "--checkpoint", str(d / "ckpt.pt"), "--out-dir", str(d / "out")])
     return d, result
@@ -103,6 +105,8 @@ def test_metadata_and_fixed_shapes(exported):
         assert meta["trianflow.resize"] == "area-down-linear-up"  # what the run path does to images
         info = parse_metadata(meta, d / "out" / f"{kind}.onnx", kind)  # the reader's validation
         assert info.input_size == (128, 384) and info.resize == "area-down-linear-up"
+        assert json.loads(meta["trianflow.train_input_size"]) == [128, 384]
+        assert json.loads(meta["trianflow.weights"]) == {"source": "trianflow-vo-checkpoint", "file": "ckpt.pt"}
     flow_meta = {p.key: p.value for p in onnx.load(str(d / "out" / "flow.onnx")).metadata_props}
     assert json.loads(flow_meta["trianflow.config"])["search_range"] == 4
     depth_meta = {p.key: p.value for p in onnx.load(str(d / "out" / "depth.onnx")).metadata_props}
@@ -113,7 +117,9 @@ def test_checkpoint_round_trip(tmp_path):
     ckpt = random_checkpoint(3, (64, 192))
     save_checkpoint(tmp_path / "c.pt", ckpt)
     loaded = load_checkpoint(tmp_path / "c.pt")
-    assert loaded.input_size == (64, 192) and loaded.channel_order == "RGB"
+    assert loaded.input_size == (64, 192)
+    assert loaded.channel_order == "BGR" and loaded.resize == "linear"  # defaults: the authors' preprocessing
+    assert ckpt["format_version"] == 2
     for k, v in ckpt["flow"]["state_dict"].items():
         assert torch.equal(loaded.flow.net.state_dict()[k], v)
     assert loaded.depth.normalisation == {"mean": [0.45] * 3, "std": [0.225] * 3}

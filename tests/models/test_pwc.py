@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch", reason="needs torch (pip install 'trianflow-vo[torch]')")
+import torch.nn.functional as F  # noqa: E402
 
 from trianflow_vo.models.losses import photometric_error, smoothness  # noqa: E402
 from trianflow_vo.models.pwc import PWCConfig, PWCNet, cost_volume, upsample_flow, warp  # noqa: E402
@@ -153,3 +154,69 @@ def test_estimator_connections(connections):
 def test_unknown_connections_rejected():
     with pytest.raises(ValueError, match="estimator_connections"):
         PWCNet(PWCConfig(estimator_connections="sparse"))
+
+
+def test_default_is_the_authors_flow_network():
+    """Pyramid 16..196, estimator inputs 81 / 81 + C_l + 2, context input 2 + 32: the
+    parameter count of their flow model (fpyramid + pwc_model, 5,134,324)."""
+    net = PWCNet()
+    assert net.config.pyramid_channels == (16, 32, 64, 96, 128, 196)
+    assert net.config.estimator_connections == "pairwise"
+    assert sum(p.numel() for p in net.parameters()) == 5_134_324
+    sd = net.state_dict()
+    assert tuple(sd["estimators.0.convs.0.0.weight"].shape) == (128, 81, 3, 3)  # level 6: cost volume only
+    assert tuple(sd["estimators.1.convs.0.0.weight"].shape) == (128, 81 + 128 + 2, 3, 3)
+    assert tuple(sd["estimators.4.convs.0.0.weight"].shape) == (128, 81 + 32 + 2, 3, 3)
+    assert tuple(sd["context.net.0.0.weight"].shape) == (128, 34, 3, 3)
+
+
+def test_decoder_wiring_is_the_authors():
+    """Hooks on the estimators and the context network: level 6 sees the raw cost volume (no
+    activation, negative values kept), level 5 sees [cost(f1, warp(f2, up)), f1, up] with
+    up = 2 x bilinear of the level-6 flow, the context sees [flow2, x4] and is added to flow2."""
+    torch.manual_seed(0)
+    net = PWCNet().eval()
+    h, w = 64, 128
+    g = torch.Generator().manual_seed(1)
+    chans = net.config.pyramid_channels
+    f1 = [torch.randn(1, c, h // 2 ** (i + 1), w // 2 ** (i + 1), generator=g) for i, c in enumerate(chans)]
+    f2 = [torch.randn(1, c, h // 2 ** (i + 1), w // 2 ** (i + 1), generator=g) for i, c in enumerate(chans)]
+    seen = {}
+    hooks = [net.estimators[k].register_forward_hook(
+        lambda m, i, o, k=k: seen.__setitem__(f"est{k}", (i[0], o))) for k in (0, 1, 4)]
+    hooks.append(net.context.register_forward_hook(lambda m, i, o: seen.__setitem__("ctx", (i[0], o))))
+    with torch.no_grad():
+        flows = net.decode(f1, f2)
+    for hk in hooks:
+        hk.remove()
+    x6, (_, flow6) = seen["est0"]
+    cost6 = cost_volume(f1[5], f2[5], 4)
+    assert (cost6 < 0).any()
+    assert torch.equal(x6, cost6)
+    assert torch.equal(flows[4], flow6)  # level 6: the prediction is the flow
+    x5, (_, res5) = seen["est1"]
+    up6 = F.interpolate(flow6, scale_factor=2.0, mode="bilinear", align_corners=False) * 2.0
+    assert torch.allclose(x5[:, :81], cost_volume(f1[4], warp(f2[4], up6), 4), atol=1e-6)
+    assert torch.equal(x5[:, 81:81 + 128], f1[4])
+    assert torch.allclose(x5[:, 81 + 128:], up6, atol=1e-6)
+    assert torch.allclose(flows[3], res5 + up6, atol=1e-6)
+    ctx_in, ctx_out = seen["ctx"]
+    (feat2, res2) = seen["est4"][1]
+    assert ctx_in.shape[1] == 2 + 32
+    assert torch.equal(ctx_in[:, 2:], feat2)  # x4 of the level-2 estimator, after the flow
+    assert torch.allclose(flows[0], ctx_in[:, :2] + ctx_out, atol=1e-6)
+
+
+def test_multiscale_outputs_as_the_authors():
+    """Their outputs: flow_(2+k) x 4 resized to (H / 2**k, W / 2**k); output 0 = full_flow."""
+    torch.manual_seed(0)
+    net = PWCNet(SMALL).eval()
+    x1, x2 = torch.rand(1, 3, 64, 128), torch.rand(1, 3, 64, 128)
+    with torch.no_grad():
+        flows = net(x1, x2)
+        outs = net.multiscale(flows, (64, 128))
+        fw, _ = net.forward_backward(x1, x2)
+    assert [tuple(o.shape) for o in outs] == [(1, 2, 64 // 2 ** k, 128 // 2 ** k) for k in range(4)]
+    assert torch.allclose(outs[0], net.full_flow(flows[0], (64, 128)), atol=1e-6)
+    assert torch.allclose(outs[0], fw, atol=1e-5)
+    assert torch.allclose(outs[1], F.interpolate(flows[1] * 4.0, size=(32, 64), mode="bilinear"), atol=1e-6)
