@@ -132,7 +132,7 @@ class InputConfig(_Section):
                            rule="> input.start")
     stride: int = _opt(1, "read every stride-th source frame", range=_Range(1))
     size: tuple[int, int] | None = _opt(None, "working (h, w) the frames are resized to; null = automatic",
-                                        check=_multiples_of_64, rule="positive multiples of 64", sep="x",
+                                        check=_multiples_of_64, rule="positive multiples of 64, at most 4096", sep="x",
                                         form="HxW or [h, w]")
     intrinsics: tuple[float, float, float, float] | None = _opt(
         None, "camera fx, fy, cx, cy in pixels at source resolution; null = from input.calib or the sequence",
