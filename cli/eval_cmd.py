@@ -28,6 +28,7 @@ def _parse_lengths(ctx, param, value: str) -> list[float]:
 Examples:
   trianflow-vo eval --gt data/kitti00/poses.txt --lengths 10,20,30,40,50
   trianflow-vo eval --gt gt_poses/09.txt --pred results/09.txt --json m.json --plot m.png
+  trianflow-vo eval --gt gt_poses/09.txt --pred runs/09-stride2 --protocol kitti-odom-eval
 """,
 )
 @click.option("--gt", "gt_path", required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path),
@@ -44,10 +45,19 @@ Examples:
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Write all metrics to this JSON file.")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Write a PNG: top view (x-z) of ground truth and aligned prediction, errors per length.")
+              help="Write a figure: top view (x-z) of ground truth and aligned prediction, errors per length; "
+                   "the format is the suffix's: .png, .jpg/.jpeg, .pdf or .svg.")
 @click.option("--max-time-diff", type=click.FloatRange(min=0.0), default=0.02, show_default=True,
               help="TUM-to-TUM association: largest timestamp difference (s).")
-def eval_cmd(gt_path, pred_path, align, lengths, json_path, plot_path, max_time_diff):
+@click.option("--protocol", type=click.Choice(["kept-frames", "kitti-odom-eval"]), default="kept-frames",
+              show_default=True,
+              help="Segment start frames of the KITTI metric: every 10th kept frame (kept-frames), or "
+                   "ground-truth frames 0, 10, 20, ... with segments whose first or end frame is not predicted "
+                   "dropped (kitti-odom-eval, the common script). The same when every frame is predicted.")
+@click.option("--allow-partial", is_flag=True,
+              help="Evaluate even when fewer than half of the predicted frames have a ground-truth pose "
+                   "(refused by default: the prediction or its frames.txt likely belongs to another sequence).")
+def eval_cmd(gt_path, pred_path, align, lengths, json_path, plot_path, max_time_diff, protocol, allow_partial):
     """Evaluate a trajectory against ground truth (KITTI t_err/r_err, ATE, RPE).
 
     \b
@@ -64,12 +74,20 @@ def eval_cmd(gt_path, pred_path, align, lengths, json_path, plot_path, max_time_
         (first frame more than that length further along), the relative-pose
         error between ground-truth and predicted motion over the segment.
         t_err = mean translation error / length (%), r_err = mean rotation
-        angle / length (deg/100 m); also per length.
+        angle / length (deg/100 m); also per length. --protocol
+        kitti-odom-eval starts segments at ground-truth frames 0, 10, 20, ...
+        instead and drops those whose first or end frame is not predicted.
      5. ATE (m): position error after the same alignment (RMSE, mean, max).
         RPE between consecutive kept frames: translation (m) and rotation
-        (deg), RMSE and mean.
+        (deg), RMSE and mean; rotations are orthonormalised (nearest
+        rotation, SVD) first. The segment metric uses them as read.
 
-    With these settings the published KITTI numbers are reproduced exactly.
+    When the prediction has a pose for every ground-truth frame, these
+    defaults reproduce the published KITTI numbers exactly (and both
+    protocols agree); with missing or strided frames use --protocol
+    kitti-odom-eval to compare with that script's numbers.
+    Predicted frames without ground truth are counted in a warning; fewer
+    than half matched is refused unless --allow-partial.
     Sequences shorter than the shortest length have no segment: this is
     reported (with suggested --lengths), the other metrics are still given.
     """
@@ -82,10 +100,17 @@ def eval_cmd(gt_path, pred_path, align, lengths, json_path, plot_path, max_time_
         if out is not None and not out.resolve().parent.is_dir():
             raise click.ClickException(f"{out}: cannot write there, {out.parent} is not an existing folder")
     with user_errors():
+        if plot_path is not None:
+            from trianflow_vo.eval.plot import plot_format
+
+            plot_format(plot_path)  # an unknown suffix is refused before any work
         if pred_path is None:
             pred_path = find_latest_run(Path("runs"))
             click.echo(f"using the latest run: {pred_path}", err=True)
-        result = evaluate_files(pred_path, gt_path, align=align, lengths=lengths, max_time_diff=max_time_diff)
+        result = evaluate_files(pred_path, gt_path, align=align, lengths=lengths, max_time_diff=max_time_diff,
+                                protocol=protocol, allow_partial=allow_partial)
+        for line in result.metrics.get("warnings", ()):
+            click.echo(f"warning: {line}", err=True)
         click.echo(format_report(result.metrics))
         if json_path is not None:
             try:

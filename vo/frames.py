@@ -32,3 +32,30 @@ class FrameSkip:
     index: int
     source: str
     reason: str
+
+
+@dataclass(frozen=True)
+class Shortfall:
+    """The source ended before the frame count it states (e.g. a truncated video file).
+
+    A reader sets it (``Sequence.shortfall``) when iteration ends early; the pipeline
+    logs it as a ``truncated-input`` warning.
+
+    Attributes:
+        source: the file.
+        decoded: source frames read before the source ended.
+        stated: frames the container states (``CAP_PROP_FRAME_COUNT``).
+        missing: selected frames that were never delivered.
+    """
+
+    source: str
+    decoded: int
+    stated: int
+    missing: int
+
+    @property
+    def message(self) -> str:
+        return (
+            f"{self.source}: truncated or corrupt: {self.decoded} of the {self.stated} frames the "
+            f"container states could be decoded; {self.missing} selected frame(s) missing at the end"
+        )

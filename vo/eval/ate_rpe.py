@@ -6,6 +6,14 @@ here: evo's RPE inverts poses by transposing their rotation and measures angles 
 from files (KITTI, 7-Scenes) are orthonormal to ~1e-7 only: evo's numbers differ from the
 devkit-style ones (exact inverse, ``acos`` of the trace, as the segment metric) by up to
 1e-2 relative on rotation, and evo raises on 7-Scenes ground truth.
+
+Before the relative rotations of RPE, both trajectories' rotations are replaced by the
+nearest rotation (SVD, :func:`vo.eval.segments.nearest_rotation`): with the rotations
+as read, the ~1e-7 non-orthonormality of KITTI ground truth biases the
+``acos((trace - 1) / 2)`` of the small frame-to-frame rotations (RPE rotation RMSE of
+KITTI 09 +0.18 %, its mean -1.2 %). The segment metric keeps the rotations as read, to
+reproduce the published numbers (there the angles are large and the change is ~1e-5
+relative).
 """
 
 from __future__ import annotations
@@ -14,7 +22,7 @@ import numpy as np
 from evo.core import metrics as _evo_metrics
 from evo.core.trajectory import PosePath3D
 
-from trianflow_vo.eval.segments import rotation_angle
+from trianflow_vo.eval.segments import nearest_rotation, rotation_angle
 
 
 def _pair(gt_poses, pred_poses) -> tuple[PosePath3D, PosePath3D]:
@@ -51,8 +59,9 @@ def rpe_errors(gt_poses: np.ndarray, pred_poses: np.ndarray, delta: int = 1) -> 
     """Relative pose error between frames ``i`` and ``i + delta``.
 
     ``E_i = inv(inv(G_i) G_{i+d}) @ inv(P_i) P_{i+d}``: its translation norm (m) and
-    rotation angle (rad). Exact inverses and the devkit's ``acos`` angle (see the module
-    docstring for why this is not evo's RPE).
+    rotation angle (rad), after replacing every rotation of both trajectories by its
+    nearest rotation (SVD). Exact inverses and the devkit's ``acos`` angle (see the
+    module docstring for why this is not evo's RPE).
 
     Args:
         gt_poses: ``(N, 4, 4)`` ground-truth camera-to-world poses.
@@ -71,6 +80,7 @@ def rpe_errors(gt_poses: np.ndarray, pred_poses: np.ndarray, delta: int = 1) -> 
         raise ValueError(f"delta must be >= 1, got {delta}")
     if G.shape[0] <= delta:
         return np.zeros(0), np.zeros(0)
+    G, P = nearest_rotation(G), nearest_rotation(P)
     rel_gt = np.linalg.inv(G[:-delta]) @ G[delta:]
     rel_pred = np.linalg.inv(P[:-delta]) @ P[delta:]
     E = np.linalg.inv(rel_gt) @ rel_pred

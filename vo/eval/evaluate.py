@@ -23,9 +23,11 @@ from trianflow_vo.eval.loader import MIN_COMMON_FRAMES, Association, associate, 
 from trianflow_vo.eval.segments import (
     DEFAULT_LENGTHS,
     DEFAULT_STEP,
+    PROTOCOLS,
     SegmentErrors,
     path_distances,
     segment_errors,
+    segment_errors_all_gt,
     summarize_segments,
 )
 
@@ -76,6 +78,9 @@ def evaluate_associated(
     lengths=DEFAULT_LENGTHS,
     step: int = DEFAULT_STEP,
     frames: np.ndarray | None = None,
+    protocol: str = "kept-frames",
+    gt_all: np.ndarray | None = None,
+    gt_all_frames: np.ndarray | None = None,
 ) -> EvalResult:
     """Protocol steps 2-5 on poses already associated one-to-one (same frames, in order).
 
@@ -84,11 +89,17 @@ def evaluate_associated(
         gt_poses: ``(K, 4, 4)`` ground-truth camera-to-world poses (or an evo path).
         align: ``"7dof"``, ``"6dof"``, ``"scale"`` or ``"none"``.
         lengths: segment lengths (m).
-        step: first frames every ``step`` kept frames.
-        frames: ``(K,)`` frame indices, only recorded.
+        step: first frames every ``step`` kept frames (``"kept-frames"``), or every
+            ``step`` ground-truth frames (``"kitti-odom-eval"``).
+        frames: ``(K,)`` frame indices (needed by ``"kitti-odom-eval"``, else only recorded).
+        protocol: ``"kept-frames"`` (default) or ``"kitti-odom-eval"``: which segments
+            the KITTI metric uses (see :mod:`vo.eval.segments`).
+        gt_all: ``(M, 4, 4)`` the whole ground truth, and ``gt_all_frames`` ``(M,)`` its
+            frame indices: needed by ``"kitti-odom-eval"`` only.
 
     Raises:
-        InputError: fewer than 3 frames, or a degenerate alignment.
+        InputError: fewer than 3 frames, a degenerate alignment, or
+            ``"kitti-odom-eval"`` without frame indices.
     """
     pred = path_poses(pred_poses) if isinstance(pred_poses, PosePath3D) else np.asarray(pred_poses, dtype=np.float64)
     gt = path_poses(gt_poses) if isinstance(gt_poses, PosePath3D) else np.asarray(gt_poses, dtype=np.float64)
@@ -101,12 +112,29 @@ def evaluate_associated(
         raise InputError(f"segment lengths must be positive numbers, got {lengths}")
     if pred.shape[0] < MIN_COMMON_FRAMES:
         raise InputError(f"only {pred.shape[0]} common frame(s); need at least {MIN_COMMON_FRAMES}")
+    if protocol not in PROTOCOLS:
+        raise InputError(f"unknown protocol {protocol!r}; expected one of {', '.join(PROTOCOLS)}")
+    pred_gt_pos = None
+    if protocol == "kitti-odom-eval":
+        if frames is None or gt_all is None or gt_all_frames is None:
+            raise InputError("--protocol kitti-odom-eval needs frame indices (it starts segments at ground-truth "
+                             "frames 0, 10, 20, ...): not available when matched by timestamp")
+        gt_all = np.asarray(gt_all, dtype=np.float64)
+        gaf = np.asarray(gt_all_frames, dtype=np.int64)
+        fr = np.asarray(frames, dtype=np.int64)
+        pred_gt_pos = np.searchsorted(gaf, fr)
+        found = pred_gt_pos < gaf.size
+        if np.any(np.diff(gaf) <= 0) or not found.all() or np.any(gaf[pred_gt_pos] != fr):
+            raise ValueError("gt_all_frames must be increasing and hold every one of frames")
     est, ref = as_path(pred), as_path(gt)
     (s, R, t), valid = align_paths(est, ref, align)
     if not valid:
         raise InputError(degenerate_message(align))
     pred_aligned, gt_r = path_poses(est), path_poses(ref)
-    seg = segment_errors(gt_r, pred_aligned, lengths, step)
+    if protocol == "kitti-odom-eval":
+        seg = segment_errors_all_gt(gt_all, pred_aligned, pred_gt_pos, lengths, step)
+    else:
+        seg = segment_errors(gt_r, pred_aligned, lengths, step)
     seg_summary = summarize_segments(seg, lengths)
     ape = _evo_metrics.APE(_evo_metrics.PoseRelation.translation_part)
     ape.process_data((ref, est))
@@ -134,6 +162,7 @@ def evaluate_associated(
         "num_frames": int(pred.shape[0]),
         "num_segments": seg_summary["num_segments"],
         "align": align,
+        "protocol": protocol,
         "scale": float(s),
         "lengths": lengths,
         "step": int(step),
@@ -162,6 +191,7 @@ def evaluate(
     align: str = "7dof",
     lengths=DEFAULT_LENGTHS,
     step: int = DEFAULT_STEP,
+    protocol: str = "kept-frames",
 ) -> dict:
     """Evaluate a predicted trajectory against ground truth (the ``trianflow-vo eval`` protocol).
 
@@ -174,7 +204,12 @@ def evaluate(
        first frames every ``step`` kept frames, for each length L whose end frame (first
        one more than L further along the path) exists the relative-pose error; ``t_err``
        = mean translation error / L (%), ``r_err`` = mean rotation angle / L (deg/100 m).
-    5. ATE (position error after alignment) and RPE between consecutive kept frames.
+       With ``protocol="kitti-odom-eval"`` the segments follow that script instead:
+       distances along every ground-truth frame, first frames the ground-truth frames
+       0, ``step``, 2 ``step``, ..., a segment dropped when its first or end frame is not
+       predicted (the same as the default when every ground-truth frame is predicted).
+    5. ATE (position error after alignment) and RPE between consecutive kept frames
+       (rotations replaced by the nearest rotation first, see :mod:`vo.eval.ate_rpe`).
 
     Args:
         pred_poses: ``(N, 4, 4)`` predicted camera-to-world poses.
@@ -185,6 +220,7 @@ def evaluate(
         align: ``"7dof"`` (default), ``"6dof"``, ``"scale"``, ``"none"``.
         lengths: segment lengths in metres (default 100, 200, ..., 800).
         step: first-frame spacing in kept frames (default 10).
+        protocol: ``"kept-frames"`` (default) or ``"kitti-odom-eval"`` (see step 4).
 
     Returns:
         A dict: ``t_err`` (%), ``r_err`` (deg/100 m) -- None when no segment fits, with
@@ -212,7 +248,32 @@ def evaluate(
     pi, gi = match_frames(pf, gf)
     if pi.size < MIN_COMMON_FRAMES:
         raise InputError(f"only {pi.size} frame(s) in common with the ground truth; need at least {MIN_COMMON_FRAMES}")
-    return evaluate_associated(pred[pi], gt[gi], align, lengths, step, pf[pi]).metrics
+    order = np.argsort(gf, kind="stable")
+    return evaluate_associated(pred[pi], gt[gi], align, lengths, step, pf[pi], protocol, gt[order],
+                               gf[order]).metrics
+
+
+def coverage_check(num_pred: int, num_common: int, allow_partial: bool, where=None) -> list[str]:
+    """Warnings (or the refusal) about predicted frames that have no ground truth.
+
+    Returns one warning line when some predicted frames have no ground-truth pose.
+
+    Raises:
+        InputError: fewer than half of the predicted frames have a ground-truth pose and
+            ``allow_partial`` is False (a ``frames.txt`` shifted or of another sequence).
+    """
+    missing = num_pred - num_common
+    if missing <= 0:
+        return []
+    if 2 * num_common < num_pred and not allow_partial:
+        raise InputError(
+            f"only {num_common} of the {num_pred} predicted frames have a ground-truth pose: this prediction (or its "
+            "frames.txt) does not seem to belong to this ground truth (shifted indices or another sequence); "
+            f"pass --allow-partial to evaluate the {num_common} common frames anyway",
+            where,
+        )
+    return [f"{missing} of the {num_pred} predicted frames have no ground-truth pose and are not evaluated "
+            f"({num_common} evaluated)"]
 
 
 def evaluate_files(
@@ -222,18 +283,32 @@ def evaluate_files(
     lengths=DEFAULT_LENGTHS,
     step: int = DEFAULT_STEP,
     max_time_diff: float = DEFAULT_MAX_TIME_DIFF,
+    protocol: str = "kept-frames",
+    allow_partial: bool = False,
 ) -> EvalResult:
     """Load, associate (see :func:`vo.eval.loader.associate`) and evaluate.
 
     ``pred_path`` is a run folder or a trajectory file. The metrics dict also gets
-    ``pred``, ``gt`` (files read), ``matched_by``, ``num_pred_frames`` and
-    ``num_gt_frames``. Degenerate alignments are reported against ``pred_path``.
+    ``pred``, ``gt`` (files read), ``matched_by``, ``num_pred_frames``,
+    ``num_gt_frames``, ``num_pred_unmatched`` (predicted frames without ground truth)
+    and ``warnings`` (lines; ``trianflow-vo eval`` prints them on stderr). Degenerate
+    alignments are reported against ``pred_path``.
+
+    Raises:
+        InputError: as :func:`vo.eval.loader.associate`; fewer than half of the predicted
+            frames have a ground-truth pose (unless ``allow_partial``).
     """
     gt = load_ground_truth(gt_path)
     pred, desc = load_prediction(pred_path, gt.kind)
     assoc: Association = associate(pred, gt, max_time_diff, desc)
+    num_common = len(assoc.pred_poses)
+    warnings = coverage_check(assoc.num_pred, num_common, allow_partial, pred.path)
     try:
-        result = evaluate_associated(assoc.pred, assoc.gt, align, lengths, step, assoc.frames)
+        gt_all = gt_frames = None
+        if protocol == "kitti-odom-eval" and assoc.frames is not None:
+            gt_all, gt_frames = gt.poses, gt.frames
+        result = evaluate_associated(assoc.pred, assoc.gt, align, lengths, step, assoc.frames, protocol, gt_all,
+                                     gt_frames)
     except InputError as exc:
         if exc.path is None:
             raise InputError(exc.message, pred.path) from None
@@ -245,6 +320,8 @@ def evaluate_files(
             "matched_by": assoc.matched_by,
             "num_pred_frames": assoc.num_pred,
             "num_gt_frames": assoc.num_gt,
+            "num_pred_unmatched": assoc.num_pred - num_common,
+            "warnings": warnings,
         }
     )
     return result

@@ -1,4 +1,5 @@
-"""PNG figure of an evaluation: top-down trajectories and errors per segment length.
+"""Figure of an evaluation (PNG, JPEG, PDF or SVG, as the file's suffix says): top-down
+trajectories and errors per segment length.
 
 The trajectories are drawn by evo's plotting (:func:`evo.tools.plot.traj`, top view
 ``PlotMode.xz``) on a headless Agg figure of our own; the per-length panel is ours (evo
@@ -19,6 +20,33 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+
+
+# file suffix -> matplotlib format; anything else is refused (never a PNG under another name)
+PLOT_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".pdf": "pdf", ".svg": "svg"}
+
+
+def plot_format(path: str | Path) -> str:
+    """The matplotlib format that ``path``'s suffix names (``"png"``, ``"jpeg"``, ``"pdf"``, ``"svg"``).
+
+    Raises:
+        vo.errors.InputError: any other suffix (or none), naming the file and the choices.
+    """
+    from trianflow_vo.errors import InputError
+
+    suffix = Path(path).suffix.lower()
+    if suffix not in PLOT_FORMATS:
+        what = f"'{Path(path).suffix}'" if suffix else "no suffix"
+        raise InputError(f"cannot tell the image format from {what}: name the plot .png, .jpg/.jpeg, .pdf or .svg",
+                         path)
+    return PLOT_FORMATS[suffix]
+
+
+def axis_units(align: str) -> str:
+    """Unit of the top view's axes: metres when the alignment fixes the prediction's scale
+    (``7dof``, ``scale``); otherwise the prediction keeps its own, monocular, scale-free
+    units (``none``, ``6dof``) while the ground truth is in metres."""
+    return "m" if align in ("7dof", "scale") else "m; prediction scale-free, not scale-aligned"
 
 
 class PlotFallbackWarning(RuntimeWarning):
@@ -91,17 +119,32 @@ def draw_top_view(ax, positions: np.ndarray, style: str = "-", color=None, label
 
 
 def plot_evaluation(result, path: str | Path, title: str | None = None) -> Path:
-    """Write ``path`` (PNG): ground truth and aligned prediction seen from above (x-z
-    plane, camera convention y down), and t_err / r_err per segment length.
+    """Write ``path``: ground truth and aligned prediction seen from above (x-z plane,
+    camera convention y down), and t_err / r_err per segment length, in the format its
+    suffix names (see :func:`plot_format`).
 
     Args:
         result: a :class:`vo.eval.EvalResult`.
-        path: output file; its folder must exist.
-        title: figure title (default: alignment and main numbers).
+        path: output file (``.png``, ``.jpg``/``.jpeg``, ``.pdf`` or ``.svg``); its folder
+            must exist.
+        title: figure title.
 
     Returns:
         ``path`` as a Path.
+
+    Raises:
+        vo.errors.InputError: an unknown suffix (checked before drawing).
     """
+    fmt = plot_format(path)
+    fig = evaluation_figure(result, title)
+    path = Path(path)
+    fig.savefig(path, format=fmt)
+    return path
+
+
+def evaluation_figure(result, title: str | None = None):
+    """The matplotlib ``Figure`` :func:`plot_evaluation` writes (headless, Agg canvas).
+    The top view's axes say their unit (:func:`axis_units`)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -112,10 +155,12 @@ def plot_evaluation(result, path: str | Path, title: str | None = None) -> Path:
     FigureCanvasAgg(fig)
     ax_traj = fig.add_subplot(1, 2, 1)
     draw_top_view(ax_traj, gt, "-", color="black", label="ground truth", linewidth=1.5)
-    draw_top_view(ax_traj, pr, "-", color="tab:red", label=f"prediction ({m['align']} aligned)", linewidth=1.2)
+    pred_label = "prediction (not aligned)" if m["align"] == "none" else f"prediction ({m['align']} aligned)"
+    draw_top_view(ax_traj, pr, "-", color="tab:red", label=pred_label, linewidth=1.2)
     ax_traj.plot(gt[0, 0], gt[0, 2], "o", color="black", ms=5, label="start")
-    ax_traj.set_xlabel("x (m)")
-    ax_traj.set_ylabel("z (m)")
+    unit = axis_units(m["align"])
+    ax_traj.set_xlabel(f"x ({unit})")
+    ax_traj.set_ylabel(f"z ({unit})")
     ax_traj.set_aspect("equal", adjustable="datalim")
     ax_traj.grid(True, alpha=0.3)
     ax_traj.legend(loc="best", fontsize=8)
@@ -144,6 +189,4 @@ def plot_evaluation(result, path: str | Path, title: str | None = None) -> Path:
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, format="png")
-    return path
+    return fig

@@ -28,9 +28,12 @@ def format_report(metrics: dict) -> str:
     out.append(f"path length  {m['path_length']:.1f} m (ground truth)")
     out.append("")
     if m["num_segments"]:
-        out.append(
-            f"KITTI segment metric ({m['num_segments']} segments, first frames every {m['step']} frames)"
-        )
+        if m.get("protocol") == "kitti-odom-eval":
+            starts = (f"first frames: ground-truth frames 0, {m['step']}, {2 * m['step']}, ... that are predicted, "
+                      "kitti-odom-eval protocol")
+        else:
+            starts = f"first frames every {m['step']} frames"
+        out.append(f"KITTI segment metric ({m['num_segments']} segments, {starts})")
         out.append(f"  t_err  {m['t_err']:.4f} %")
         out.append(f"  r_err  {m['r_err']:.4f} deg/100m")
         out.append("")

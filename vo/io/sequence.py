@@ -16,7 +16,12 @@
   images of its own but exactly one image sub-folder named ``color``,
   ``images``, ``image``, ``rgb`` or ``frames`` (the 7-Scenes clip's layout) reads
   that sub-folder, with the calibration and ``poses.txt`` beside it.
-* ``"video"``: any file OpenCV can decode; timestamps from the container.
+* ``"video"``: a file with a video container suffix (mp4, mov, avi, mkv, webm,
+  m4v, mpg, mpeg, wmv, flv, ts, ... see :data:`VIDEO_EXTENSIONS`) whose first
+  frame decodes as an image; timestamps from the container. Any other file is
+  refused (FFmpeg would otherwise read e.g. a ``.txt`` as a video of rendered
+  text). When the video ends before the frame count its container states (a
+  truncated file), :attr:`Sequence.shortfall` says so after iteration.
 
 Frames are decoded lazily while iterating; a :class:`Sequence` holds only the
 list of file names (or the video path), never the images. Frames that cannot be
@@ -36,10 +41,15 @@ from pathlib import Path
 import numpy as np
 
 from trianflow_vo.errors import InputError
-from trianflow_vo.frames import Frame, FrameSkip
+from trianflow_vo.frames import Frame, FrameSkip, Shortfall
 from trianflow_vo.io import calib as _calib
 
 IMAGE_EXTENSIONS = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"})
+# video container suffixes accepted as a video input (anything else is refused, not probed)
+VIDEO_EXTENSIONS = frozenset({".mp4", ".m4v", ".mov", ".avi", ".mkv", ".webm", ".mpg", ".mpeg", ".m2v", ".wmv",
+                              ".asf", ".flv", ".ts", ".mts", ".m2ts", ".3gp", ".ogv", ".mxf", ".vob"})
+EXPECTED_INPUT = ("expected a sequence folder (KITTI or TUM), an image folder or a video file "
+                  "(.mp4, .mov, .avi, .mkv, .webm, ...)")
 KINDS = ("kitti", "tum", "images", "video")
 # sub-folders searched when an "images" folder holds no images itself
 IMAGE_SUBFOLDERS = ("color", "images", "image", "rgb", "frames")
@@ -112,6 +122,9 @@ class Sequence:
         n_source_frames: frames in the whole source (for video: the
             container's frame count, possibly approximate).
         image_dir: the folder the frames are read from (None for video).
+        shortfall: after an iteration, a :class:`~vo.frames.Shortfall` when the
+            video ended before the frame count its container states (truncated
+            file), else None.
     """
 
     def __init__(
@@ -140,6 +153,7 @@ class Sequence:
         self.stride = stride
         self.n_source_frames = n_source_frames
         self.image_dir = image_dir
+        self.shortfall: Shortfall | None = None
         self._files = files
         self._timestamps = timestamps
 
@@ -200,17 +214,20 @@ class Sequence:
             raise InputError("video cannot be opened", self.path)
         fps = cap.get(cv2.CAP_PROP_FPS)
         H, W = self.image_size
+        self.shortfall = None
         try:
             i = 0
             while i < self.end:
                 wanted = i >= self.start and (i - self.start) % self.stride == 0
                 if not wanted:
                     if not cap.grab():
+                        self._ended_early(i)
                         return
                     i += 1
                     continue
                 ok, img = cap.read()
                 if not ok or img is None:
+                    self._ended_early(i)
                     return
                 src = f"{self.path}#{i}"
                 if img.ndim == 2:
@@ -223,6 +240,11 @@ class Sequence:
                 i += 1
         finally:
             cap.release()
+
+    def _ended_early(self, decoded: int) -> None:
+        """The video ended at source frame ``decoded`` before ``self.end``: record the shortfall."""
+        missing = sum(1 for k in self.indices if k >= decoded)
+        self.shortfall = Shortfall(str(self.path), decoded, self.n_source_frames, missing)
 
 
 def _video_time(cap, index: int, fps: float) -> float | None:
@@ -441,11 +463,11 @@ def _open_video(path, intrinsics, calib, start, end, stride) -> Sequence:
     cap = cv2.VideoCapture(str(path))
     try:
         if not cap.isOpened():
-            raise InputError("video cannot be opened (unknown format or corrupt file)", path)
+            raise InputError(f"video cannot be opened (unknown format or corrupt file); {EXPECTED_INPUT}", path)
         n = int(round(cap.get(cv2.CAP_PROP_FRAME_COUNT)))
         ok, img = cap.read()
-        if not ok or img is None:
-            raise InputError("video has no decodable frame", path)
+        if not ok or not isinstance(img, np.ndarray) or img.ndim not in (2, 3) or img.size == 0:
+            raise InputError(f"video has no decodable frame; {EXPECTED_INPUT}", path)
     finally:
         cap.release()
     if n <= 0:
@@ -494,8 +516,9 @@ def open_sequence(
 
     Raises:
         InputError: missing path, no images, no intrinsics, malformed
-            calibration / ``times.txt`` / ``rgb.txt`` line, video that cannot be
-            opened, bad selection, fewer than two frames selected.
+            calibration / ``times.txt`` / ``rgb.txt`` line, a file without a video
+            container suffix, video that cannot be opened or whose first frame does
+            not decode, bad selection, fewer than two frames selected.
     """
     p = Path(path)
     if not p.exists():
@@ -506,6 +529,9 @@ def open_sequence(
     if p.is_file():
         if p.suffix.lower() in IMAGE_EXTENSIONS:
             raise InputError("a single image is not a sequence: give its folder or a video", p)
+        if p.suffix.lower() not in VIDEO_EXTENSIONS:
+            what = f"a {p.suffix} file" if p.suffix else "a file without a suffix"
+            raise InputError(f"not a video file ({what}, not a video container); {EXPECTED_INPUT}", p)
         return _open_video(p, intrinsics, calib_p, start, end, stride)
     if not p.is_dir():
         raise InputError("neither a folder nor a file", p)
