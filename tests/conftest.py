@@ -30,3 +30,12 @@ def sample_seq() -> Path:
     if not SAMPLE.is_dir():
         pytest.skip(f"shipped sample missing at {SAMPLE}")
     return SAMPLE
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _home_out_of_the_way(tmp_path_factory):
+    """Tests never write into the real HOME (evo writes ~/.evo when its plotting is first imported)."""
+    mp = pytest.MonkeyPatch()
+    mp.setenv("HOME", str(tmp_path_factory.mktemp("home")))
+    yield
+    mp.undo()

@@ -45,3 +45,17 @@ def angle_between(a, b):
     a = a / np.linalg.norm(a)
     b = b / np.linalg.norm(b)
     return float(np.degrees(np.arccos(np.clip(a @ b, -1, 1))))
+
+
+def winding(n: int, seed: int = 0) -> np.ndarray:
+    """``(n, 4, 4)`` camera-to-world poses of a smooth drive, ~1 m forward per frame."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    out = [np.eye(4)]
+    for _ in range(n - 1):
+        S = np.eye(4)
+        S[:3, :3] = Rotation.from_rotvec(rng.normal(0.0, [0.01, 0.04, 0.01])).as_matrix()
+        S[:3, 3] = (rng.normal(0, 0.05), rng.normal(0, 0.02), 1.0)
+        out.append(out[-1] @ S)
+    return np.stack(out)

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from synthetic import winding
 from click.testing import CliRunner
 from scipy.spatial.transform import Rotation
 
@@ -21,27 +22,6 @@ from trianflow_vo.io.trajectory import format_kitti_line, format_tum_line, read_
 REPO = Path(__file__).resolve().parents[2]
 JSON_KEYS = {"t_err", "r_err", "ate_rmse", "rpe_trans", "rpe_rot", "num_frames", "num_segments", "align", "per_length"}
 PUBLISHED = {"09": (2.527535077, 0.287707222), "10": (2.221192217, 0.369334674)}
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _evo_settings_out_of_home(tmp_path_factory):
-    """evo writes ~/.evo when its plotting is first imported: not into the real HOME."""
-    mp = pytest.MonkeyPatch()
-    mp.setenv("HOME", str(tmp_path_factory.mktemp("home")))
-    yield
-    mp.undo()
-
-
-def winding(n: int, seed: int = 0) -> np.ndarray:
-    """``(n, 4, 4)`` a smooth drive, ~1 m per frame."""
-    rng = np.random.default_rng(seed)
-    out = [np.eye(4)]
-    for _ in range(n - 1):
-        S = np.eye(4)
-        S[:3, :3] = Rotation.from_rotvec(rng.normal(0.0, [0.01, 0.04, 0.01])).as_matrix()
-        S[:3, 3] = (rng.normal(0, 0.05), rng.normal(0, 0.02), 1.0)
-        out.append(out[-1] @ S)
-    return np.stack(out)
 
 
 def straight(frames, step=1.0):

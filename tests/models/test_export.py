@@ -57,8 +57,8 @@ def exported(tmp_path_factory):
 def test_cli_export_reports_differences(exported):
     d, result = exported
     assert result.exit_code == 0, result.output
-    lines = [ln for ln in result.output.splitlines() if ln.startswith(("flow:", "depth:"))]
-    assert len(lines) == 2
+    lines = [ln for ln in result.output.splitlines() if ln.startswith(("flow:", "flow_split:", "depth:"))]
+    assert len(lines) == 3  # flow.onnx, its encoder + decoder, depth.onnx
     for ln in lines:
         worst = float(ln.split("max |onnxruntime - torch| = ")[1].split()[0])
         assert worst <= 1e-4
@@ -66,7 +66,57 @@ def test_cli_export_reports_differences(exported):
 
 def test_single_files_only(exported):
     d, _ = exported
-    assert sorted(p.name for p in (d / "out").iterdir()) == ["depth.onnx", "flow.onnx"]
+    assert sorted(p.name for p in (d / "out").iterdir()) == ["depth.onnx", "flow.onnx", "flow_decoder.onnx",
+                                                            "flow_encoder.onnx"]
+    for p in (d / "out").iterdir():  # each self-contained (no external-data sidecar)
+        model = onnx.load(str(p), load_external_data=False)
+        assert not any(t.data_location == onnx.TensorProto.EXTERNAL for t in model.graph.initializer)
+
+
+def test_split_graphs_equal_flow_onnx(exported):
+    from trianflow_vo.models.export import split_parity
+
+    d, _ = exported
+    ckpt = load_checkpoint(d / "ckpt.pt")
+    imgs = random_images(SIZE, 2, seed=11)
+    diffs = split_parity(ckpt.flow.net, ckpt.flow.normalisation, SIZE, d / "out",
+                         {"image1": imgs[0], "image2": imgs[1]})
+    assert max(diffs.values()) <= 1e-4, diffs
+    meta = {p.key: p.value for p in onnx.load(str(d / "out" / "flow_decoder.onnx")).metadata_props}
+    assert json.loads(meta["trianflow.weights"])["file"] == "ckpt.pt"  # the parts carry the provenance too
+    assert "trianflow.quantization" not in meta
+
+
+def test_no_split_and_quantize_options(tmp_path):
+    import cv2
+    import numpy as np
+
+    r = CliRunner().invoke(main, ["export", "--random-init", "--size", "64x192", "--no-split",
+                                  "--out-dir", str(tmp_path / "a")])
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["depth.onnx", "flow.onnx"]
+    r = CliRunner().invoke(main, ["export", "--random-init", "--size", "64x192", "--quantize", "int8",
+                                  "--out-dir", str(tmp_path / "b")])
+    assert r.exit_code != 0 and "--calibration" in r.output
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    rng = np.random.default_rng(0)
+    base = cv2.resize(rng.integers(0, 256, (16, 48, 3), dtype=np.uint8), (200, 70))
+    for i in range(3):
+        cv2.imwrite(str(frames / f"{i:06d}.png"), np.roll(base, 2 * i, axis=1))
+    r = CliRunner().invoke(main, ["export", "--random-init", "--size", "64x192", "--quantize", "int8",
+                                  "--calibration", str(frames), "--out-dir", str(tmp_path / "c")])
+    assert r.exit_code == 0, r.output
+    assert "flow_decoder_int8:" in r.output and "depth_int8:" in r.output
+    from trianflow_vo.flow.onnx_flow import OnnxFlow
+
+    src = OnnxFlow(tmp_path / "c" / "flow.onnx", threads=1)
+    assert src.split and src.describe()["quantization"] == "int8-static-qdq"
+    img = cv2.imread(str(frames / "000000.png"))
+    fw, _ = src.flow_pair(src.prepare(img), src.prepare(img))
+    assert fw.shape == (70, 200, 2) and np.isfinite(fw).all()
+    nodes = {n.op_type for n in onnx.load(str(tmp_path / "c" / "depth.onnx")).graph.node}
+    assert "QuantizeLinear" in nodes
 
 
 def test_parity_on_new_inputs(exported):

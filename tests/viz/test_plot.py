@@ -20,15 +20,6 @@ BLUE_BGR = (180, 119, 31)  # matplotlib tab:blue, the estimate
 ORANGE_BGR = (14, 127, 255)  # matplotlib tab:orange, the ground truth
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _evo_settings_out_of_home(tmp_path_factory):
-    """evo writes ~/.evo when its plotting is first imported: not into the real HOME."""
-    mp = pytest.MonkeyPatch()
-    mp.setenv("HOME", str(tmp_path_factory.mktemp("home")))
-    yield
-    mp.undo()
-
-
 def rot_y(a):
     c, s = np.cos(a), np.sin(a)
     return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
