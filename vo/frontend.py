@@ -354,12 +354,10 @@ class FrontEnd:
         idx2, q1, q2, X, valid, angle = self._triangulate(rel, m, ref, tm)
         t0 = time.perf_counter()
         X_cur = X[valid] @ rel.R.T + rel.t
-        uv, inside = self.camera.project(X_cur)
+        uv, inside = self.camera.project(X_cur)  # inside: rounds to a pixel of the image
         d_net = np.zeros(X_cur.shape[0])
-        ui, vi = np.rint(uv[inside, 0]).astype(int), np.rint(uv[inside, 1]).astype(int)
-        ok = inside.copy()
-        ok[inside] = (ui >= 0) & (ui < self.camera.w) & (vi >= 0) & (vi < self.camera.h)
-        d_net[ok] = cur.depth[np.rint(uv[ok, 1]).astype(int), np.rint(uv[ok, 0]).astype(int)]
+        px = np.rint(uv[inside]).astype(int)
+        d_net[inside] = cur.depth[px[:, 1], px[:, 0]]
         scale, fit_ok = fit_scale_ransac(X_cur[:, 2], d_net, threshold=sc.depth_fit_threshold,
                                          trials=sc.depth_fit_trials, min_points=sc.depth_fit_min_points,
                                          rng=self.rng)
