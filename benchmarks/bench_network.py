@@ -12,6 +12,14 @@ on the weights) and the same thread count. Medians per stage are printed as a ta
 and written as JSON (``--json``) and as a markdown section (``--md``).
 
     python benchmarks/bench_network.py --pairs 8 --threads 2
+
+``--split``: the run path's variants side by side, interleaved pair by pair: ``single``
+(flow.onnx as one graph), ``split`` (encoder in ``prepare``, once per frame; decoder per
+pair), ``split-int8`` (``export --quantize int8``: int8 decoder and depth); per stage ms,
+peak RSS of a fresh process per variant, onnxruntime settings on the split graphs, and
+int8 against fp32 on real frames (flow end-point error, depth relative error):
+
+    python benchmarks/bench_network.py --split --pairs 8 --threads 2 --append-md
 """
 
 from __future__ import annotations
@@ -298,6 +306,267 @@ def _markdown(res: dict) -> str:
     return "\n".join(lines)
 
 
+# ---------------------------------------------------------------------------
+# split flow graphs (encoder per frame, decoder per pair), int8, onnxruntime settings
+
+
+def _rss_mb() -> dict:
+    """Current and peak resident memory of this process (MB)."""
+    out = {}
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(("VmRSS:", "VmHWM:")):
+            out["rss" if line.startswith("VmRSS") else "peak"] = int(line.split()[1]) / 1024
+    return out
+
+
+def _make_variant(name: str, dirs: dict, threads: int):
+    from trianflow_vo.depth.onnx_depth import OnnxDepthNet
+    from trianflow_vo.flow.onnx_flow import OnnxFlow
+
+    d = dirs["int8"] if name == "split-int8" else dirs["fp32"]
+    flow = OnnxFlow(d / "flow.onnx", threads=threads, split=(name != "single"))
+    return flow, OnnxDepthNet(d / "depth.onnx", threads=threads)
+
+
+def bench_variants(dirs: dict, frames, threads: int, names: list[str]) -> dict:
+    """Per pair, every variant in turn (order rotated each pair): prepare (+ encoder when
+    split), flow (single graph or decoder), depth (once per frame), masks (numpy)."""
+    from trianflow_vo.flow.masks import flow_scores
+
+    models = {n: _make_variant(n, dirs, threads) for n in names}
+    prev = {}
+    for n, (flow, depth) in models.items():  # warm-up, and frame 0
+        p0 = flow.prepare(frames[0])
+        flow.flow_pair(p0, p0)
+        depth.predict(frames[0])
+        prev[n] = flow.prepare(frames[0])
+    st = {n: {k: [] for k in ("prepare_encoder", "flow", "depth", "masks", "total")} for n in names}
+    for i in range(1, len(frames)):
+        order = names[i % len(names):] + names[:i % len(names)]
+        for n in order:
+            flow, depth = models[n]
+            cur, t_prep = _timed(flow.prepare, frames[i])
+            (fw, bw), t_flow = _timed(flow.flow_pair, prev[n], cur)
+            _, t_depth = _timed(depth.predict, frames[i])
+            _, t_masks = _timed(flow_scores, fw, bw)
+            for k, v in (("prepare_encoder", t_prep), ("flow", t_flow), ("depth", t_depth), ("masks", t_masks),
+                         ("total", t_prep + t_flow + t_depth + t_masks)):
+                st[n][k].append(v)
+            prev[n] = cur
+    return {n: {k: _median_ms(v) for k, v in d.items()} for n, d in st.items()}
+
+
+def peak_rss(variant: str, dirs: dict, seq: Path, size, threads: int, pairs: int = 3) -> dict:
+    """Peak RSS of a fresh process that opens one variant and runs ``pairs`` pairs."""
+    import subprocess
+
+    code = (f"import sys; sys.argv=['x']; sys.path.insert(0, {str(REPO)!r});"
+            "from benchmarks.bench_network import _rss_worker; "
+            f"_rss_worker({variant!r}, {str(dirs['fp32'])!r}, {str(dirs.get('int8') or dirs['fp32'])!r}, "
+            f"{str(seq)!r}, {list(size)!r}, {threads}, {pairs})")
+    out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def _rss_worker(variant, fp32, int8, seq, size, threads, pairs):
+    frames = _load_frames(Path(seq), pairs + 1, tuple(size))
+    base = _rss_mb()["rss"]
+    flow, depth = _make_variant(variant, {"fp32": Path(fp32), "int8": Path(int8)}, threads)
+    loaded = _rss_mb()["rss"]
+    prev = flow.prepare(frames[0])
+    for f in frames[1:]:
+        cur = flow.prepare(f)
+        flow.flow_pair(prev, cur)
+        depth.predict(f)
+        prev = cur
+    print(json.dumps({"base_mb": base, "after_open_mb": loaded, "peak_mb": _rss_mb()["peak"]}))
+
+
+def bench_ort_split_settings(model_dir: Path, frames, threads: int, repeats: int) -> list[dict]:
+    """Encoder + decoder (split fp32 graphs) per pair under onnxruntime settings, interleaved."""
+    import onnxruntime as ort
+
+    from trianflow_vo.flow.onnx_flow import OnnxFlow
+
+    src = OnnxFlow(model_dir / "flow.onnx", threads=threads)
+    enc_in = src.prepare(frames[0]).tensor
+    pa, pb = src.prepare(frames[0]).features, src.prepare(frames[1]).features
+    dec_feed = dict(zip(src.decoder.info.input_names, [*pa, *pb]))
+    levels = {"basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+              "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
+              "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL}
+    variants = [("all", threads, False, "sequential"), ("all", threads, True, "sequential"),
+                ("extended", threads, False, "sequential"), ("basic", threads, False, "sequential"),
+                ("all", threads, False, "parallel"), ("all", 1, False, "sequential")]
+    sessions = []
+    for level, n_threads, spin, mode in variants:
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = n_threads
+        opts.inter_op_num_threads = 1
+        opts.graph_optimization_level = levels[level]
+        opts.execution_mode = (ort.ExecutionMode.ORT_PARALLEL if mode == "parallel"
+                               else ort.ExecutionMode.ORT_SEQUENTIAL)
+        opts.log_severity_level = 3
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if spin else "0")
+        enc = ort.InferenceSession(str(src.encoder.info.path), opts, providers=["CPUExecutionProvider"])
+        dec = ort.InferenceSession(str(src.decoder.info.path), opts, providers=["CPUExecutionProvider"])
+        enc.run(None, {"image": enc_in})
+        dec.run(None, dec_feed)
+        sessions.append((enc, dec, {"encoder": [], "decoder": []}))
+    for _ in range(repeats):  # interleaved
+        for enc, dec, t in sessions:
+            t["encoder"].append(_timed(enc.run, None, {"image": enc_in})[1])
+            t["decoder"].append(_timed(dec.run, None, dec_feed)[1])
+    rows = []
+    for (level, n_threads, spin, mode), (_, _, t) in zip(variants, sessions):
+        e, d = _median_ms(t["encoder"]), _median_ms(t["decoder"])
+        rows.append({"opt_level": level, "threads": n_threads, "spinning": spin, "execution_mode": mode,
+                     "encoder_ms": e, "decoder_ms": d, "per_pair_ms": e + d})
+    return rows
+
+
+def int8_accuracy(dirs: dict, seqs: list[Path], size, threads: int, n: int) -> list[dict]:
+    """Flow end-point error (working pixels) and depth relative error of int8 against fp32."""
+    from trianflow_vo.depth.onnx_depth import OnnxDepthNet
+    from trianflow_vo.flow.onnx_flow import OnnxFlow
+
+    f32 = OnnxFlow(dirs["fp32"] / "flow.onnx", threads=threads)
+    f8 = OnnxFlow(dirs["int8"] / "flow.onnx", threads=threads)
+    d32 = OnnxDepthNet(dirs["fp32"] / "depth.onnx", threads=threads)
+    d8 = OnnxDepthNet(dirs["int8"] / "depth.onnx", threads=threads)
+    rows = []
+    for seq in seqs:
+        frames = _load_frames(seq, n + 1, size)
+        epe, mag, rel = [], [], []
+        for a, b in zip(frames[:-1], frames[1:]):
+            ref, _ = f32.flow_pair(f32.prepare(a), f32.prepare(b))
+            got, _ = f8.flow_pair(f8.prepare(a), f8.prepare(b))
+            epe.append(np.linalg.norm(got - ref, axis=2).ravel())
+            mag.append(np.linalg.norm(ref, axis=2).ravel())
+            r32, r8 = d32.predict(b), d8.predict(b)
+            rel.append((np.abs(r8 - r32) / r32).ravel())
+        epe, mag, rel = np.concatenate(epe), np.concatenate(mag), np.concatenate(rel)
+        rows.append({"seq": str(seq.relative_to(REPO)) if seq.is_relative_to(REPO) else str(seq), "pairs": n,
+                     "flow_epe_median_px": float(np.median(epe)), "flow_epe_mean_px": float(epe.mean()),
+                     "flow_epe_p99_px": float(np.percentile(epe, 99)),
+                     "fp32_flow_median_magnitude_px": float(np.median(mag)),
+                     "depth_rel_err_median": float(np.median(rel)), "depth_rel_err_mean": float(rel.mean())})
+    return rows
+
+
+def _markdown_split(res: dict) -> str:
+    v = res["variants_ms"]
+    names = list(v)
+    lines = [
+        f"## Split flow graphs, int8, onnxruntime settings ({res['date']}, {res['size_hw'][0]}x{res['size_hw'][1]})",
+        "",
+        f"`{res['command']}` on {res['machine']} ({res['cpu_count']} cores, {res['cpu_flags']}), "
+        f"{res['threads']} threads, {res['pairs']} pairs of `{res['seq']}`, random weights, variants run "
+        f"interleaved pair by pair, medians. onnxruntime {res['versions']['onnxruntime']}. Load average at "
+        f"start / end: {res['load_average']} / {res['load_average_end']} (other jobs shared the 2 cores: "
+        "absolute times are inflated; compare columns of this table, not with the older sections).",
+        "",
+        "| stage (median ms per pair) | " + " | ".join(names) + " |",
+        "|---|" + "---:|" * len(names),
+    ]
+    labels = {"prepare_encoder": "prepare (resize, convert; + encoder when split)",
+              "flow": "flow fw+bw (single graph / decoder)", "depth": "depth (once per frame)",
+              "masks": "masks M_s, M_o (numpy)", "total": "**total per pair**"}
+    for k, label in labels.items():
+        cells = [f"{v[n][k]:.1f}" for n in names]
+        if k == "total":
+            cells = [f"**{c}**" for c in cells]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    if res.get("rss"):
+        lines.append("| peak RSS MB (fresh process, 3 pairs) | " + " | ".join(
+            f"{res['rss'][n]['peak_mb']:.0f}" for n in names) + " |")
+    lines += ["", "Split graphs (encoder + decoder, fp32) under onnxruntime settings, interleaved:", "",
+              "| optimisation | threads | spinning | execution mode | encoder ms | decoder ms | per pair ms |",
+              "|---|---:|---|---|---:|---:|---:|"]
+    for r in res["ort_split_settings"]:
+        lines.append(f"| {r['opt_level']} | {r['threads']} | {r['spinning']} | {r['execution_mode']} | "
+                     f"{r['encoder_ms']:.1f} | {r['decoder_ms']:.1f} | {r['per_pair_ms']:.1f} |")
+    if res.get("int8_accuracy"):
+        lines += ["", "int8 (static QDQ, calibrated on the first 8 frames of sample/kitti00) against fp32, "
+                  "working pixels. **Random weights**: the fp32 flows are a fraction of a pixel and the depth "
+                  "near constant, so these errors say little about trained networks; they need re-measuring "
+                  "with the authors' weights.", "",
+                  "| sequence | pairs | flow EPE median px | EPE mean | EPE p99 | fp32 flow median px | "
+                  "depth rel. err. median | mean |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+        for r in res["int8_accuracy"]:
+            lines.append(f"| `{r['seq']}` | {r['pairs']} | {r['flow_epe_median_px']:.4f} | "
+                         f"{r['flow_epe_mean_px']:.4f} | {r['flow_epe_p99_px']:.4f} | "
+                         f"{r['fp32_flow_median_magnitude_px']:.3f} | {r['depth_rel_err_median']:.4f} | "
+                         f"{r['depth_rel_err_mean']:.4f} |")
+    lines += ["", res.get("notes", ""), ""]
+    return "\n".join(lines)
+
+
+def main_split(args, size, frames) -> int:
+    """``--split``: fp32 single vs fp32 split vs int8 split, ORT settings, RSS, int8 accuracy."""
+    import datetime
+    import subprocess
+
+    import onnxruntime
+
+    with tempfile.TemporaryDirectory() as tmp:
+        dirs = {"fp32": args.models or Path(tmp) / "fp32"}
+        if args.models is None:
+            print(f"exporting random-init models at {size[0]}x{size[1]} ...", flush=True)
+            export_models(dirs["fp32"], size, 0)
+        names = ["single", "split"]
+        if args.int8_models is not None or not args.no_int8:
+            dirs["int8"] = args.int8_models or Path(tmp) / "int8"
+            if args.int8_models is None:
+                print("exporting int8 models ...", flush=True)
+                subprocess.run([sys.executable, "-m", "trianflow_vo.cli.main", "export", "--random-init",
+                                "--size", args.size, "--out-dir", str(dirs["int8"]), "--quantize", "int8",
+                                "--calibration", str(REPO / "sample" / "kitti00")], check=True)
+            names.append("split-int8")
+        load = os.getloadavg()
+        print("variants, interleaved ...", flush=True)
+        variants = bench_variants(dirs, frames, args.threads, names)
+        print("peak RSS ...", flush=True)
+        rss = {n: peak_rss(n, dirs, args.seq, size, args.threads) for n in names}
+        print("onnxruntime settings (split graphs) ...", flush=True)
+        settings = bench_ort_split_settings(dirs["fp32"], frames, args.threads, repeats=max(3, args.pairs // 2))
+        acc = []
+        if "int8" in dirs:
+            print("int8 accuracy ...", flush=True)
+            seqs = [args.seq] + [p for p in (REPO.parent / "shared" / "data" / "kitti00-f0000-0150",) if p.is_dir()]
+            acc = int8_accuracy(dirs, seqs, size, args.threads, args.pairs)
+        load_end = os.getloadavg()
+    flags = Path("/proc/cpuinfo").read_text().split("flags", 1)[-1].split("\n", 1)[0].split()
+    simd = ", ".join(f for f in ("avx2", "avx512f", "avx512_vnni", "avx_vnni", "amx_int8") if f in flags)
+    res = {
+        "date": datetime.date.today().isoformat(),
+        "command": "python benchmarks/bench_network.py " + " ".join(args.argv),
+        "machine": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(), "cpu_flags": simd,
+        "load_average": [round(v, 2) for v in load], "load_average_end": [round(v, 2) for v in load_end],
+        "threads": args.threads, "pairs": args.pairs,
+        "seq": str(args.seq.relative_to(REPO)) if args.seq.is_relative_to(REPO) else str(args.seq),
+        "size_hw": list(size), "versions": {"onnxruntime": onnxruntime.__version__},
+        "variants_ms": variants, "rss": rss, "ort_split_settings": settings, "int8_accuracy": acc,
+        "target_ms": 300.0,
+    }
+    for n, v in variants.items():
+        print(f"{n:12s} " + "  ".join(f"{k} {x:.1f}" for k, x in v.items()) + f"  peak RSS {rss[n]['peak_mb']:.0f} MB")
+    for r in settings:
+        print(f"ORT opt={r['opt_level']:9s} threads={r['threads']} spin={r['spinning']!s:5s} "
+              f"mode={r['execution_mode']:10s} enc {r['encoder_ms']:.1f} dec {r['decoder_ms']:.1f} ms")
+    for r in acc:
+        print(json.dumps(r))
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(res, indent=2))
+    if args.append_md:
+        with open(args.md, "a") as fh:
+            fh.write("\n" + _markdown_split(res))
+        print(f"wrote {args.json}, appended to {args.md}")
+    else:
+        print(f"wrote {args.json}")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seq", type=Path, default=REPO / "sample" / "kitti00")
@@ -310,7 +579,15 @@ def main(argv=None) -> int:
     ap.add_argument("--md", type=Path, default=REPO / "benchmarks" / "NETWORK.md")
     ap.add_argument("--render", type=Path, default=None, metavar="JSON",
                     help="only rewrite --md from an earlier --json result")
+    ap.add_argument("--split", action="store_true",
+                    help="single graph vs split encoder/decoder vs int8, ORT settings on the split graphs, "
+                         "peak RSS, int8 accuracy (writes --json; --append-md appends a section to --md)")
+    ap.add_argument("--int8-models", type=Path, default=None,
+                    help="with --split: directory of an 'export --quantize int8' (default: export one)")
+    ap.add_argument("--no-int8", action="store_true", help="with --split: skip the int8 variant")
+    ap.add_argument("--append-md", action="store_true", help="with --split: append the section to --md")
     args = ap.parse_args(argv)
+    args.argv = list(argv if argv is not None else sys.argv[1:])
     if args.render is not None:
         args.md.write_text(_markdown(json.loads(args.render.read_text())))
         print(f"wrote {args.md}")
@@ -318,6 +595,10 @@ def main(argv=None) -> int:
     size = tuple(int(v) for v in args.size.split("x"))
     frames = _load_frames(args.seq, args.pairs + 1, size)
     cv2.setNumThreads(args.threads)
+    if args.split:
+        if args.json == REPO / "benchmarks" / "out" / "network.json":
+            args.json = REPO / "benchmarks" / "out" / "network_split.json"
+        return main_split(args, size, frames)
 
     from trianflow_vo.models.checkpoint import checkpoint_from_dict, random_checkpoint
 

@@ -15,7 +15,8 @@ cannot drift:
 Metadata keys (without the prefix), all string values:
 
 ==================  =============================================================
-``kind``            ``flow`` or ``depth`` (:data:`KINDS`)
+``kind``            ``flow`` or ``depth`` (:data:`KINDS`); the parts of a split flow
+                    network: ``flow_encoder``, ``flow_decoder`` (:data:`PART_KINDS`)
 ``format_version``  :data:`FORMAT_VERSION`
 ``input_size``      ``"HxW"``, the fixed size of every graph input and output
 ``channel_order``   ``RGB`` or ``BGR``: order of the 3 input channels
@@ -28,6 +29,17 @@ Metadata keys (without the prefix), all string values:
                     absent in models exported before it existed, which are read as
                     :data:`DEFAULT_RESIZE` (what the run path always did)
 ``depth_range``     (depth) JSON ``[min_depth, max_depth]``
+``features``        (flow_encoder, flow_decoder) JSON ``{"names": [...], "shapes": [[1, C, h, w], ...]}``:
+                    the pyramid levels handed from encoder to decoder; the encoder's
+                    outputs are ``names``, the decoder's inputs ``image1_<name>`` ...
+                    then ``image2_<name>`` ... (:func:`decoder_input_names`)
+``split``           (optional) JSON ``{"id": str, "encoder": file, "decoder": file}``
+                    in ``flow.onnx``: the same network is also exported as an encoder
+                    (image -> pyramid, run once per frame) and a decoder (two pyramids
+                    -> flow_fw, flow_bw) beside it; the two parts carry the same
+                    ``split`` ``{"id": ..., "of": "flow.onnx"}``. A flow.onnx without
+                    it (older exports) is run as one graph.
+``quantization``    (optional) ``"int8-static-qdq"``: convolutions quantised to int8 (not fp32)
 ==================  =============================================================
 
 onnxruntime is imported inside the functions that need it: this module imports
@@ -65,6 +77,9 @@ KEY_CONFIG = "config"
 KEY_VERSION = "version"
 KEY_RESIZE = "resize"
 KEY_DEPTH_RANGE = "depth_range"
+KEY_FEATURES = "features"
+KEY_SPLIT = "split"
+KEY_QUANTIZATION = "quantization"
 SCHEMA_KEYS = (KEY_KIND, KEY_FORMAT_VERSION, KEY_INPUT_SIZE, KEY_CHANNEL_ORDER, KEY_NORMALISATION,
                KEY_INPUT_NAMES, KEY_OUTPUT_NAMES, KEY_CONFIG, KEY_VERSION, KEY_RESIZE)
 
@@ -84,11 +99,16 @@ PIXEL_RANGE = (0, 255)
 
 @dataclass(frozen=True)
 class KindSpec:
-    """The graph interface of one kind of network."""
+    """The graph interface of one kind of network.
+
+    ``features``: ``"outputs"`` (encoder) or ``"inputs"`` (decoder) when those names and
+    shapes are not fixed by the kind but recorded in the ``features`` metadata key.
+    """
 
     inputs: tuple[str, ...]
     outputs: tuple[str, ...]
     output_channels: int
+    features: str | None = None
 
     def input_shape(self, size_hw: tuple[int, int]) -> list[int]:
         return [1, 3, int(size_hw[0]), int(size_hw[1])]
@@ -104,11 +124,41 @@ KINDS: dict[str, KindSpec] = {
     "depth": KindSpec(inputs=("image",), outputs=("depth",), output_channels=1),
 }
 
+#: kinds of the graphs a model is split into (never given to the run on their own): the
+#: flow network split in two (see the ``split`` key)
+PART_KINDS: dict[str, KindSpec] = {
+    # image -> pyramid features ...
+    "flow_encoder": KindSpec(inputs=("image",), outputs=(), output_channels=0, features="outputs"),
+    # ... and pyramids of image 1 and image 2 -> both flows (one batch of 2 inside)
+    "flow_decoder": KindSpec(inputs=(), outputs=("flow_fw", "flow_bw"), output_channels=2, features="inputs"),
+}
+
+
+def decoder_input_names(feature_names: Sequence[str]) -> list[str]:
+    """The flow decoder's inputs: ``image1_<name>`` for every feature, then ``image2_<name>``."""
+    return [f"image1_{n}" for n in feature_names] + [f"image2_{n}" for n in feature_names]
+
+
+def _check_features(features) -> tuple[list[str], list[list[int]]]:
+    """``features`` metadata -> (names, shapes); raises ValueError when malformed."""
+    if not isinstance(features, Mapping):
+        raise ValueError("features must be a JSON object with names and shapes")
+    names, shapes = features.get("names"), features.get("shapes")
+    if (not isinstance(names, list) or not names or not all(isinstance(n, str) and n for n in names)
+            or not isinstance(shapes, list) or len(shapes) != len(names)
+            or not all(isinstance(sh, list) and len(sh) == 4 and all(isinstance(v, int) and v > 0 for v in sh)
+                       for sh in shapes)):
+        raise ValueError("features must hold equally long lists of names and 4-d positive shapes")
+    return list(names), [list(sh) for sh in shapes]
+
+
+ALL_KINDS: dict[str, KindSpec] = {**KINDS, **PART_KINDS}
+
 
 def _check_kind(kind: str) -> KindSpec:
-    if kind not in KINDS:
-        raise ValueError(f"kind must be one of {sorted(KINDS)}")
-    return KINDS[kind]
+    if kind not in ALL_KINDS:
+        raise ValueError(f"kind must be one of {sorted(ALL_KINDS)}")
+    return ALL_KINDS[kind]
 
 
 def model_metadata(kind: str, size_hw: Sequence[int], channel_order: str, normalisation: Mapping,
@@ -148,8 +198,17 @@ def model_metadata(kind: str, size_hw: Sequence[int], channel_order: str, normal
     std = [float(v) for v in normalisation["std"]]
     if len(mean) != 3 or len(std) != 3:
         raise ValueError("normalisation mean and std must have 3 values each")
-    if tuple(input_names) != spec.inputs:
-        raise ValueError(f"{kind} input names must be {list(spec.inputs)}, got {list(input_names)}")
+    want_in = list(spec.inputs)
+    if spec.features is not None:
+        if KEY_FEATURES not in (extra or {}):
+            raise ValueError(f"a {kind} model needs the {KEY_FEATURES!r} metadata (extra)")
+        feat_names, _ = _check_features(extra[KEY_FEATURES])
+        if spec.features == "inputs":
+            want_in = decoder_input_names(feat_names)
+        elif list(output_names) != feat_names:
+            raise ValueError(f"{kind} output names must be the features {feat_names}, got {list(output_names)}")
+    if list(input_names) != want_in:
+        raise ValueError(f"{kind} input names must be {want_in}, got {list(input_names)}")
     missing = [n for n in spec.outputs if n not in output_names]
     if missing:
         raise ValueError(f"{kind} output names lack {missing}")
@@ -186,10 +245,36 @@ class ModelInfo:
     version: str  # exporter version, "?" when not recorded
     config: dict = field(default_factory=dict)
     meta: dict = field(default_factory=dict)  # every trianflow.* key, prefix removed
+    features: tuple[tuple[str, tuple[int, ...]], ...] = ()  # (name, shape) (flow_encoder/decoder)
+    split: dict | None = None  # the parsed ``split`` key, None when absent
 
     @property
     def spec(self) -> KindSpec:
-        return KINDS[self.kind]
+        return ALL_KINDS[self.kind]
+
+    @property
+    def input_names(self) -> list[str]:
+        """The graph inputs, in order (fixed by the kind or, for a decoder, by ``features``)."""
+        if self.spec.features == "inputs":
+            return decoder_input_names([n for n, _ in self.features])
+        return list(self.spec.inputs)
+
+    @property
+    def output_names(self) -> list[str]:
+        """The graph outputs the reader uses, in order."""
+        if self.spec.features == "outputs":
+            return [n for n, _ in self.features]
+        return list(self.spec.outputs)
+
+    def input_shapes(self) -> list[list[int]]:
+        if self.spec.features == "inputs":
+            return [list(sh) for _, sh in self.features] * 2
+        return [self.spec.input_shape(self.input_size) for _ in self.spec.inputs]
+
+    def output_shapes(self) -> list[list[int]]:
+        if self.spec.features == "outputs":
+            return [list(sh) for _, sh in self.features]
+        return [self.spec.output_shape(self.input_size) for _ in self.spec.outputs]
 
 
 def _parse_size(text: str, path: Path) -> tuple[int, int]:
@@ -215,7 +300,7 @@ def parse_metadata(raw: Mapping[str, str], path: str | Path, kind: str | None = 
     Args:
         raw: the model's custom metadata (``trianflow.*`` keys; other keys are ignored).
         path: the model file, named in error messages.
-        kind: the kind the caller needs, or None for any kind of :data:`KINDS`.
+        kind: the kind the caller needs, or None for any kind (:data:`KINDS`, :data:`PART_KINDS`).
 
     Returns:
         :class:`ModelInfo` (``resize`` is :data:`DEFAULT_RESIZE` when the key is absent).
@@ -233,10 +318,10 @@ def parse_metadata(raw: Mapping[str, str], path: str | Path, kind: str | None = 
         raise ModelError(f"{path}: no trianflow-vo metadata; export the model with 'trianflow-vo export'")
     if kind is not None and meta[KEY_KIND] != kind:
         raise ModelError(f"{path}: is a {meta[KEY_KIND]!r} model, expected a {kind!r} model")
-    if meta[KEY_KIND] not in KINDS:
+    if meta[KEY_KIND] not in ALL_KINDS:
         raise ModelError(f"{path}: unknown model kind {meta[KEY_KIND]!r} (expected one of {sorted(KINDS)})")
     kind = meta[KEY_KIND]
-    spec = KINDS[kind]
+    spec = ALL_KINDS[kind]
     if meta.get(KEY_FORMAT_VERSION) != FORMAT_VERSION:
         raise ModelError(f"{path}: unsupported metadata format_version {meta.get(KEY_FORMAT_VERSION)!r}")
     if KEY_INPUT_SIZE not in meta:
@@ -254,16 +339,38 @@ def parse_metadata(raw: Mapping[str, str], path: str | Path, kind: str | None = 
     config = _json(meta, KEY_CONFIG, path) if KEY_CONFIG in meta else {}
     if not isinstance(config, dict):
         raise ModelError(f"{path}: metadata '{META_PREFIX}{KEY_CONFIG}' is not a JSON object")
+    features: tuple = ()
+    want_in, want_out = list(spec.inputs), list(spec.outputs)
+    if spec.features is not None:
+        try:
+            names, shapes = _check_features(_json(meta, KEY_FEATURES, path))
+        except ValueError as exc:
+            raise ModelError(f"{path}: metadata '{META_PREFIX}{KEY_FEATURES}': {exc}") from None
+        features = tuple((n, tuple(sh)) for n, sh in zip(names, shapes))
+        if spec.features == "inputs":
+            want_in = decoder_input_names(names)
+        else:
+            want_out = names
+    split = None
+    if KEY_SPLIT in meta:
+        split = _json(meta, KEY_SPLIT, path)
+        if not isinstance(split, dict) or not isinstance(split.get("id"), str):
+            raise ModelError(f"{path}: metadata '{META_PREFIX}{KEY_SPLIT}' must be a JSON object with an id")
+        if kind == "flow" and not all(isinstance(split.get(k), str) and split[k] and Path(split[k]).name == split[k]
+                                      for k in ("encoder", "decoder")):
+            raise ModelError(f"{path}: metadata '{META_PREFIX}{KEY_SPLIT}' must name the encoder and decoder "
+                             "files (plain file names beside it)")
     # the name lists are optional (the graph is checked anyway) but must agree when present
-    if KEY_INPUT_NAMES in meta and _json(meta, KEY_INPUT_NAMES, path) != list(spec.inputs):
-        raise ModelError(f"{path}: metadata input_names {meta[KEY_INPUT_NAMES]} != expected {list(spec.inputs)}")
+    if KEY_INPUT_NAMES in meta and _json(meta, KEY_INPUT_NAMES, path) != want_in:
+        raise ModelError(f"{path}: metadata input_names {meta[KEY_INPUT_NAMES]} != expected {want_in}")
     if KEY_OUTPUT_NAMES in meta:
         outs = _json(meta, KEY_OUTPUT_NAMES, path)
-        if not isinstance(outs, list) or any(n not in outs for n in spec.outputs):
+        if not isinstance(outs, list) or any(n not in outs for n in want_out):
             raise ModelError(f"{path}: metadata output_names {meta[KEY_OUTPUT_NAMES]} lack some of "
-                             f"{list(spec.outputs)}")
+                             f"{want_out}")
     return ModelInfo(path=path, kind=kind, input_size=size, channel_order=order, normalisation=norm,
-                     resize=resize, version=meta.get(KEY_VERSION, "?"), config=config, meta=meta)
+                     resize=resize, version=meta.get(KEY_VERSION, "?"), config=config, meta=meta,
+                     features=features, split=split)
 
 
 # ---------------------------------------------------------------------------
@@ -287,10 +394,10 @@ def require_onnxruntime():
     return ort
 
 
-def session_options(threads: int = 2):
+def session_options(threads: int = 2, optimise: bool = True):
     """The onnxruntime options of every session: ``threads`` intra-op threads, one
-    inter-op thread, sequential execution, all graph optimisations, warnings off,
-    no spinning.
+    inter-op thread, sequential execution, all graph optimisations (none with
+    ``optimise=False``: only to read a model's metadata), warnings off, no spinning.
 
     Raises:
         ValueError: ``threads < 1``.
@@ -303,7 +410,8 @@ def session_options(threads: int = 2):
     opts.intra_op_num_threads = int(threads)
     opts.inter_op_num_threads = 1
     opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.graph_optimization_level = (ort.GraphOptimizationLevel.ORT_ENABLE_ALL if optimise
+                                     else ort.GraphOptimizationLevel.ORT_DISABLE_ALL)
     opts.log_severity_level = 3
     # idle worker threads sleep instead of spinning: on a busy CPU (and between calls,
     # while the pipeline runs OpenCV/numpy) spinning threads steal the cores that do
@@ -312,10 +420,12 @@ def session_options(threads: int = 2):
     return opts
 
 
-def open_session(path: str | Path, threads: int = 2, kind: str | None = None):
+def open_session(path: str | Path, threads: int = 2, kind: str | None = None, optimise: bool = True):
     """An onnxruntime ``InferenceSession`` of ``path`` on the CPU with :func:`session_options`.
 
     No metadata check (see :func:`open_model`). ``kind`` only words the not-found error.
+    ``optimise=False``: no graph optimisation, a quick open to read the metadata only
+    (output shapes are then not inferred: :func:`check_graph` needs an optimised session).
 
     Raises:
         ValueError: ``threads < 1``.
@@ -323,7 +433,7 @@ def open_session(path: str | Path, threads: int = 2, kind: str | None = None):
         ModelError: missing file, or not a graph onnxruntime can load.
     """
     path = Path(path)
-    opts = session_options(threads)
+    opts = session_options(threads, optimise)
     ort = require_onnxruntime()
     if not path.is_file():
         raise ModelError(f"{path}: {kind + ' ' if kind else ''}model file not found")
@@ -345,22 +455,22 @@ def check_graph(session, info: ModelInfo) -> None:
     Raises:
         ModelError: one line naming the file.
     """
-    path, size, spec = info.path, info.input_size, info.spec
+    path = info.path
     inputs = session.get_inputs()
-    want_in = list(spec.inputs)
+    want_in = info.input_names
     if [i.name for i in inputs] != want_in:
         raise ModelError(f"{path}: graph inputs {[i.name for i in inputs]} != expected {want_in}")
-    for i in inputs:
-        if list(i.shape) != spec.input_shape(size):
-            raise ModelError(f"{path}: input {i.name!r} has shape {i.shape}, metadata input_size says "
-                             f"{spec.input_shape(size)}")
+    for i, want in zip(inputs, info.input_shapes()):
+        if list(i.shape) != want:
+            raise ModelError(f"{path}: input {i.name!r} has shape {i.shape}, the metadata says {want}")
     outputs = session.get_outputs()
-    missing = [n for n in spec.outputs if n not in [o.name for o in outputs]]
+    want_out = dict(zip(info.output_names, info.output_shapes()))
+    missing = [n for n in want_out if n not in [o.name for o in outputs]]
     if missing:
         raise ModelError(f"{path}: graph lacks outputs {missing}")
     for o in outputs:
-        if o.name in spec.outputs and list(o.shape) != spec.output_shape(size):
-            raise ModelError(f"{path}: output {o.name!r} has shape {o.shape}, expected {spec.output_shape(size)}")
+        if o.name in want_out and list(o.shape) != want_out[o.name]:
+            raise ModelError(f"{path}: output {o.name!r} has shape {o.shape}, expected {want_out[o.name]}")
 
 
 def open_model(path: str | Path, kind: str, threads: int = 2):
@@ -403,11 +513,12 @@ class OnnxModel:
         return to_model_input(image, self.info)
 
     def run(self, *tensors: np.ndarray) -> list[np.ndarray]:
-        """One graph call on ``tensors`` (one per graph input, in order)."""
-        spec = self.info.spec
-        if len(tensors) != len(spec.inputs):
-            raise ValueError(f"a {self.info.kind} model takes {len(spec.inputs)} inputs, got {len(tensors)}")
-        out = self.session.run(list(spec.outputs), dict(zip(spec.inputs, tensors)))
+        """One graph call on ``tensors`` (one per graph input, in order); outputs in
+        the order of :attr:`ModelInfo.output_names`."""
+        names = self.info.input_names
+        if len(tensors) != len(names):
+            raise ValueError(f"a {self.info.kind} model takes {len(names)} inputs, got {len(tensors)}")
+        out = self.session.run(self.info.output_names, dict(zip(names, tensors)))
         self.n_inferences += 1
         return out
 
