@@ -214,6 +214,9 @@ def run(seq, out_dir, config_file, overrides, no_plot, verbose, quiet, overwrite
     from trianflow_vo.pipeline import run as run_pipeline
 
     setup_logging(-1 if quiet else verbose)
+    from trianflow_vo.cli.memory import keep_freed_buffers
+
+    keep_freed_buffers()
     with user_errors():
         config = build_config(config_file, overrides, shortcuts, no_plot)
     if config.input.intrinsics is not None and config.input.calib is not None:
