@@ -138,7 +138,7 @@ def test_mapping_round_trip_and_layout_detection():
 def test_full_import_matches_the_authors_code(full_export, expected, frames):
     out, result = full_export
     assert result.exit_code == 0, result.output
-    assert sorted(p.name for p in out.iterdir()) == ["depth.onnx", "flow.onnx"]
+    assert sorted(p.name for p in out.iterdir()) == ["depth.onnx", "flow.onnx", "flow_decoder.onnx", "flow_encoder.onnx"]
     fw, bw, info = _flows(out, frames)
     assert np.abs(expected["flow_fw"]).mean() > 1.0  # flows of a few pixels, not ~0
     assert np.abs(fw - expected["flow_fw"]).max() <= FLOW_TOL_PX
@@ -161,7 +161,7 @@ def test_full_import_matches_the_authors_code(full_export, expected, frames):
 def test_flow_only_import_writes_only_flow(tmp_path, expected, frames):
     result = _export(_save_theirs(tmp_path / "their_flow.pth", "flow"), tmp_path / "out")
     assert result.exit_code == 0, result.output
-    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["flow.onnx"]
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["flow.onnx", "flow_decoder.onnx", "flow_encoder.onnx"]  # no depth.onnx
     fw, bw, info = _flows(tmp_path / "out", frames)
     assert np.abs(fw - expected["flow_fw"]).max() <= FLOW_TOL_PX
     assert np.abs(bw - expected["flow_bw"]).max() <= FLOW_TOL_PX
