@@ -38,6 +38,7 @@ from trianflow_vo.io.sequence import Prefetcher, open_sequence
 from trianflow_vo.observer import Observer
 from trianflow_vo.odometry import Odometry
 from trianflow_vo.runlog import RunLog
+from trianflow_vo.timing import StageTimer
 
 log = logging.getLogger("trianflow_vo.pipeline")
 
@@ -317,8 +318,6 @@ def check_memory(size_hw: tuple[int, int], source_hw: tuple[int, int]) -> None:
 
 def _step(odo, item, size_hw: tuple[int, int], t_prev: float) -> FrameResult:
     """Resize one decoded frame to the working size and run the odometry on it."""
-    from trianflow_vo.timing import StageTimer
-
     timer = StageTimer(t_start=t_prev)  # frame time includes waiting for the decoder
     t0 = time.perf_counter()
     img = item.image

@@ -46,17 +46,16 @@ class TriangulatedDepth:
 
     def __init__(self, size_hw: tuple[int, int]):
         self.size_hw = (int(size_hw[0]), int(size_hw[1]))
-        self._cached: tuple[int, int, ReferenceDepth | None] | None = None  # (index, id(tracks), ref)
+        self._cached: tuple[int, Tracks, ReferenceDepth | None] | None = None  # (index, tracks, ref)
 
     def reference(self, keyframe: Keyframe) -> ReferenceDepth | None:
-        key = (keyframe.index, id(keyframe.tracks))
-        if self._cached is not None and self._cached[:2] == key:
+        if self._cached is not None and self._cached[0] == keyframe.index and self._cached[1] is keyframe.tracks:
             return self._cached[2]
         ref = None
         if len(keyframe.tracks):
             dmap, wmap, imap = splat_tracks(keyframe.tracks, self.size_hw)
             ref = ReferenceDepth(depth=dmap, weight=wmap, sparse=True, track_ids=imap)
-        self._cached = (*key, ref)
+        self._cached = (keyframe.index, keyframe.tracks, ref)  # holding the tracks: identity stays meaningful
         return ref
 
     def describe(self) -> dict:
