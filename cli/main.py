@@ -18,6 +18,10 @@ _COMMANDS = {
     "export": ("trianflow_vo.cli.export_cmd", "export", "Export flow and depth networks to ONNX."),
     "view": ("trianflow_vo.cli.view_cmd", "view", "Open a Rerun recording (.rrd) in the viewer."),
     "predict": ("trianflow_vo.cli.predict_cmd", "predict", "Predict depth and/or optical flow of images with exported networks."),
+    "train": ("trianflow_vo.cli.train_cmd", "train", "Train the flow and depth networks self-supervised (TrianFlow's three stages)."),
+    "eval-depth": ("trianflow_vo.cli.eval_depth_cmd", "eval_depth", "Evaluate a depth network against ground-truth depth (KITTI/Eigen metrics)."),
+    "eval-flow": ("trianflow_vo.cli.eval_flow_cmd", "eval_flow", "Evaluate a flow network against ground-truth flow (EPE, Fl-all)."),
+    "batch": ("trianflow_vo.cli.batch_cmd", "batch", "Run many sequences at once on Ray (local or a cluster)."),
 }
 
 

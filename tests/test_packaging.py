@@ -13,7 +13,7 @@ import pytest
 from conftest import REPO
 
 FOLDERS = {"vo": "trianflow_vo", "models": "trianflow_vo.models", "cli": "trianflow_vo.cli",
-           "configs": "trianflow_vo.configs"}
+           "configs": "trianflow_vo.configs", "train": "trianflow_vo.train"}
 
 
 def _pyproject() -> dict:

@@ -1,0 +1,1 @@
+"""Self-supervised training of the flow and depth networks (TrianFlow's three stages)."""

@@ -1,0 +1,1 @@
+"""Training presets shipped as package data (YAML, one per dataset and stage)."""
