@@ -261,8 +261,32 @@ class RuntimeConfig(_Section):
     threads: int = _opt(2, "CPU threads for OpenCV and the ONNX runtime", range=_Range(1, 64))
 
 
+class ConfigRoot:
+    """Base of a configuration tree: a frozen dataclass whose fields are sections (:class:`_Section`).
+
+    :class:`Config` (a run) is one; the training command has its own
+    (:class:`trianflow_vo.train.config.TrainConfig`). Files, presets, ``--set`` and the YAML
+    writer work on any root.
+    """
+
+    def __post_init__(self) -> None:
+        hints = _hints(type(self))
+        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+            cls = hints[f.name]
+            v = getattr(self, f.name)
+            if not isinstance(v, cls):
+                raise ConfigError(f"section '{f.name}' must be a {cls.__name__}, got {type(v).__name__}",
+                                  type(self).__name__)
+
+    def to_dict(self) -> dict:
+        """Nested plain dict (Path -> str, tuple -> list), JSON/YAML-ready, sections in order."""
+        return {s.name: {f.name: _plain(getattr(getattr(self, s.name), f.name))
+                         for f in dataclasses.fields(getattr(self, s.name))}
+                for s in dataclasses.fields(self)}  # type: ignore[arg-type]
+
+
 @dataclass(frozen=True)
-class Config:
+class Config(ConfigRoot):
     """The whole configuration of a run; ``Config()`` is the defaults."""
 
     input: InputConfig = field(default_factory=InputConfig)
@@ -275,20 +299,6 @@ class Config:
     backend: BackendConfig = field(default_factory=BackendConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
-
-    def __post_init__(self) -> None:
-        hints = _hints(Config)
-        for f in dataclasses.fields(self):
-            cls = hints[f.name]
-            v = getattr(self, f.name)
-            if not isinstance(v, cls):
-                raise ConfigError(f"section '{f.name}' must be a {cls.__name__}, got {type(v).__name__}", "Config")
-
-    def to_dict(self) -> dict:
-        """Nested plain dict (Path -> str, tuple -> list), JSON/YAML-ready, sections in order."""
-        return {s.name: {f.name: _plain(getattr(getattr(self, s.name), f.name))
-                         for f in dataclasses.fields(getattr(self, s.name))}
-                for s in dataclasses.fields(self)}
 
 
 # -- checking values --------------------------------------------------------------------------------------------
@@ -387,6 +397,15 @@ def _coerce(hint: Any, meta: Mapping[str, Any], v: Any) -> Any:
                 raise _Bad("'' is not a path (use null for none)")
             return v if type(v) is type(Path()) else Path(v)
         raise _Bad(f"{_show(v)} is not a path")
+    if origin is tuple and typing.get_args(base)[1:] == (Ellipsis,):  # tuple[T, ...]: any length
+        item = typing.get_args(base)[0]
+        sep = meta.get("sep")
+        raw = v
+        if isinstance(v, str):
+            v = [] if not v.strip() else [s.strip() for s in v.split(sep or ",")]
+        if not isinstance(v, (list, tuple)):
+            raise _Bad(f"{_show(raw)} is not {meta.get('form') or 'a list'}")
+        return tuple(_coerce(item, {}, x) for x in v)
     if origin is tuple:
         items = typing.get_args(base)
         form = meta.get("form") or f"a list of {len(items)}"
@@ -447,8 +466,8 @@ def _type_text(hint: Any, meta: Mapping[str, Any]) -> str:
 
 
 # -- building ---------------------------------------------------------------------------------------------------
-def _section_classes() -> dict[str, type]:
-    return dict(_hints(Config))
+def _section_classes(root: type = None) -> dict[str, type]:
+    return dict(_hints(root or Config))
 
 
 def merge_dict(config: Config, data: Mapping, source: str) -> Config:
@@ -457,7 +476,7 @@ def merge_dict(config: Config, data: Mapping, source: str) -> Config:
     A section given as null (all its keys commented out in YAML) changes nothing.
     Raises ConfigError naming ``source`` on an unknown section or key or a bad value.
     """
-    sections = _section_classes()
+    sections = _section_classes(type(config))
     if not isinstance(data, Mapping):
         raise ConfigError(f"the configuration must be a mapping of sections ({', '.join(sections)}), "
                           f"got {_type_name(data)}", source)
@@ -482,9 +501,9 @@ def merge_dict(config: Config, data: Mapping, source: str) -> Config:
     return dataclasses.replace(config, **new) if new else config
 
 
-def config_from_dict(data: Mapping, source: str = "<dict>") -> Config:
-    """A Config from a partial nested dict (missing sections and keys keep their defaults)."""
-    return merge_dict(Config(), data, source)
+def config_from_dict(data: Mapping, source: str = "<dict>", root: type = None) -> Config:
+    """A Config (or another ``root``) from a partial nested dict (missing sections and keys keep their defaults)."""
+    return merge_dict((root or Config)(), data, source)
 
 
 def apply_overrides(config: Config, overrides: Sequence[str], source: str = "--set") -> Config:
@@ -551,16 +570,16 @@ def _parse_json(text: str, source: str) -> Any:
     return doc
 
 
-def _from_document(doc: Any, source: str) -> Config:
+def _from_document(doc: Any, source: str, root: type = None, base=None) -> Config:
     if doc is None:  # an empty file (or only comments): the defaults
         doc = {}
     if not isinstance(doc, Mapping):
-        raise ConfigError(f"the document must be a mapping of sections ({', '.join(_section_classes())}), "
+        raise ConfigError(f"the document must be a mapping of sections ({', '.join(_section_classes(root))}), "
                           f"got {_type_name(doc)}", source)
-    return config_from_dict(doc, source)
+    return merge_dict(base if base is not None else (root or Config)(), doc, source)
 
 
-def _load_file(path: Path) -> Config:
+def _load_file(path: Path, root: type = None, base=None) -> Config:
     source = str(path)
     try:
         text = path.read_text(encoding="utf-8")
@@ -569,34 +588,39 @@ def _load_file(path: Path) -> Config:
     except OSError as e:
         raise ConfigError(f"cannot read: {e.strerror or e}", source) from None
     doc = _parse_json(text, source) if path.suffix.lower() == ".json" else _parse_yaml(text, source)
-    return _from_document(doc, source)
+    return _from_document(doc, source, root, base)
 
 
-def _presets():
+def _presets(package: str = PRESET_PACKAGE):
     from importlib.resources import files
 
-    return files(PRESET_PACKAGE)
+    return files(package)
 
 
-def preset_names() -> list[str]:
-    """Names of the shipped presets (``default``, ``indoor``, ``kitti``), sorted."""
-    return sorted(e.name[:-5] for e in _presets().iterdir() if e.name.endswith(".yaml"))
+def preset_names(package: str = PRESET_PACKAGE) -> list[str]:
+    """Names of the presets shipped in ``package`` (for runs: ``default``, ``indoor``, ``kitti``), sorted."""
+    return sorted(e.name[:-5] for e in _presets(package).iterdir() if e.name.endswith(".yaml"))
 
 
-def load_config(path_or_name: str | Path) -> Config:
+def load_config(path_or_name: str | Path, *, root: type = None, package: str = PRESET_PACKAGE,
+                base=None) -> Config:
     """A Config from a ``.yaml``/``.yml`` file, a ``.json`` file (a run.json's ``"config"``
     mapping, or the whole document) or a shipped preset name (``default``, ``kitti``,
-    ``indoor``) that is not an existing file. Keys a file leaves out keep their defaults.
+    ``indoor``) that is not an existing file. Keys a file leaves out keep their defaults
+    (or the values of ``base``, a config of the same ``root``, when given).
+
+    ``root`` (default :class:`Config`) and ``package`` (where its presets live) let another
+    configuration tree (the training command's) use the same files, presets and errors.
     """
     p = Path(path_or_name)
     if p.is_file():
-        return _load_file(p)
+        return _load_file(p, root, base)
     name = os.fspath(path_or_name)
-    names = preset_names()
+    names = preset_names(package)
     if name in names:
         source = f"preset '{name}'"
-        doc = _parse_yaml((_presets() / f"{name}.yaml").read_text(encoding="utf-8"), source)
-        return _from_document(doc, source)
+        doc = _parse_yaml((_presets(package) / f"{name}.yaml").read_text(encoding="utf-8"), source)
+        return _from_document(doc, source, root, base)
     if p.is_dir():
         raise ConfigError("is a directory, not a configuration file", name)
     if not p.suffix and os.sep not in name and "/" not in name:
@@ -630,28 +654,28 @@ def _render_yaml(config: Config, header: Sequence[str] = (), comments: bool = Tr
     return "\n".join(lines) + "\n"
 
 
-def write_config_yaml(config: Config, path: Path) -> None:
+def write_config_yaml(config: Config, path: Path, header: str = HEADER) -> None:
     """Write the full effective ``config`` as YAML that :func:`load_config` reads back equal."""
-    Path(path).write_text(_render_yaml(config, [HEADER]), encoding="utf-8")
+    Path(path).write_text(_render_yaml(config, [header]), encoding="utf-8")
 
 
 # -- docs -------------------------------------------------------------------------------------------------------
-def config_keys() -> list[tuple[str, str, object, str]]:
+def config_keys(root: type = None) -> list[tuple[str, str, object, str]]:
     """``(dotted key, type text, default, help)`` of every field, in section and field order."""
     out = []
-    for s, cls in _section_classes().items():
+    for s, cls in _section_classes(root).items():
         hints = _hints(cls)
         for f in dataclasses.fields(cls):
             out.append((f"{s}.{f.name}", _type_text(hints[f.name], f.metadata), f.default, f.metadata["help"]))
     return out
 
 
-def _keys_markdown() -> str:
+def _keys_markdown(root: type = None) -> str:
     """The Markdown table of :func:`config_keys` (configs/README.md embeds it)."""
     def cell(text: str) -> str:
         return text.replace("|", "\\|")
 
-    rows = [f"| `{k}` | {cell(t)} | `{_yaml_value(d)}` | {cell(h)} |" for k, t, d, h in config_keys()]
+    rows = [f"| `{k}` | {cell(t)} | `{_yaml_value(d)}` | {cell(h)} |" for k, t, d, h in config_keys(root)]
     return "\n".join(["| key | type | default | help |", "|---|---|---|---|", *rows]) + "\n"
 
 
