@@ -238,14 +238,19 @@ def test_sigterm_exception_closes_as_interrupted(sample_seq, tmp_path):
             if result.line == 1:
                 os.kill(os.getpid(), signal.SIGTERM)  # handled by the pipeline: raises Interrupted
 
+    # the pipeline only replaces default handlers: start from the default whatever ran before
+    previous = signal.signal(signal.SIGTERM, signal.SIG_DFL)
     out = tmp_path / "out"
-    with pytest.raises(Interrupted) as info:
-        run(sample_seq, out, _config(), observers=[Term()])
+    try:
+        with pytest.raises(Interrupted) as info:
+            run(sample_seq, out, _config(), observers=[Term()])
+        assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # the pipeline restored its handler
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     assert exit_code(info.value) == 143
     doc = json.loads((out / "run.json").read_text())
     assert doc["status"] == "interrupted" and doc["signal"] == "SIGTERM" and doc["error"] is None
     assert doc["frames_processed"] == len(_lines(out / "poses.txt")) >= 1
-    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # restored
 
 
 # --------------------------------------------------------------------------- one frame rate

@@ -127,7 +127,7 @@ def test_torchrun_two_cpu_processes(clip, tmp_path):
     res = subprocess.run([torchrun, "--standalone", "--nproc_per_node", "2", "--no-python", exe, "train",
                           "--stage", "flow", str(clip), "--out", str(out), "--iters", "3", "--quiet", *TINY],
                          capture_output=True, text=True, timeout=300, env=env)
-    assert res.returncode == 0, res.stderr[-3000:]
+    assert res.returncode == 0, res.stderr[:6000]
     status = json.loads((out / "train.json").read_text())
     assert status["world_size"] == 2 and status["batch_per_process"] == 1 and status["status"] == "completed"
     assert list(out.glob("checkpoint*.pt")) == [out / "checkpoint.pt"]

@@ -31,10 +31,13 @@ def solve_pnp(
     if n < max(6, min_inliers):
         return empty, False
     cv2.setRNGSeed(rng_seed)
-    ok, rvec, tvec, inl = cv2.solvePnPRansac(
-        X_ref, pts_cur, K, None, iterationsCount=200, reprojectionError=reproj_px, confidence=0.999,
-        flags=cv2.SOLVEPNP_EPNP,
-    )
+    try:
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            X_ref, pts_cur, K, None, iterationsCount=200, reprojectionError=reproj_px, confidence=0.999,
+            flags=cv2.SOLVEPNP_EPNP,
+        )
+    except cv2.error:  # degenerate point sets can trip OpenCV's own assertions: no pose
+        return empty, False
     if not ok or inl is None or len(inl) < min_inliers:
         return empty, False
     idx = inl.ravel()

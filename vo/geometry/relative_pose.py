@@ -203,10 +203,13 @@ def estimate_relative_pose(
         x1 = (np.concatenate([pts1, np.ones((len(pts1), 1))], 1) @ Kinv.T)[:, :2]
         x2 = (np.concatenate([pts2, np.ones((len(pts2), 1))], 1) @ Kinv.T)[:, :2]
         flag = cv2.RANSAC if method == "ransac" else cv2.USAC_MAGSAC
-        E, mask = cv2.findEssentialMat(
-            np.ascontiguousarray(x1), np.ascontiguousarray(x2), np.eye(3), method=flag, prob=0.999,
-            threshold=threshold_px / f,
-        )
+        try:
+            E, mask = cv2.findEssentialMat(
+                np.ascontiguousarray(x1), np.ascontiguousarray(x2), np.eye(3), method=flag, prob=0.999,
+                threshold=threshold_px / f,
+            )
+        except cv2.error:  # OpenCV >= 5.1 asserts inside its 5-point solver on degenerate samples
+            return None, False  # (no motion, pure rotation): no model, as older versions reported
         if E is None or E.shape != (3, 3):
             return None, False  # none, or several stacked solutions from a degenerate sample
         inl = mask.ravel().astype(bool)
