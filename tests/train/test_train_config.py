@@ -70,3 +70,15 @@ def test_effective_config_round_trips(tmp_path):
     write_config_yaml(cfg, tmp_path / "c.yaml")
     back = load_config(tmp_path / "c.yaml", root=TrainConfig)
     assert back == cfg
+
+
+def test_shipped_presets_equal_the_objectives_weight_table():
+    """The YAML presets (what `--config` reads) and objective.PRESETS (the library's table) agree."""
+    import dataclasses
+
+    from trianflow_vo.train.objective import PRESETS, LossWeights
+
+    for dataset in DATASETS:
+        for stage in STAGES:
+            yaml_weights = LossWeights.from_dict(dataclasses.asdict(load_train_config(dataset, stage).losses))
+            assert yaml_weights == PRESETS[dataset][stage], (dataset, stage)

@@ -7,6 +7,10 @@
   ``calib.txt`` (the ``P<n>:`` line matching the image folder's name);
   ``times.txt`` (one timestamp per line) when present. Passing the
   ``image_<n>`` folder itself works too when its parent holds ``calib.txt``.
+* ``"kitti_raw"``: a KITTI raw drive folder (``<date>_drive_<NNNN>_sync``) with
+  ``image_02/data/`` (else ``image_00/data/``) and the date folder's
+  ``calib_cam_to_cam.txt`` (``P_rect_02``, resp. ``P_rect_00``), see
+  :mod:`trianflow_vo.io.kitti_raw`; ``image_02/timestamps.txt`` when present.
 * ``"tum"``: a TUM RGB-D folder with ``rgb.txt`` (``timestamp filename``
   lines) and ``rgb/``. Intrinsics: the published values of the Freiburg
   camera named in the folder name, else ``--intrinsics``/``--calib``.
@@ -23,8 +27,9 @@
   text). When the video ends before the frame count its container states (a
   truncated file), :attr:`Sequence.shortfall` says so after iteration.
 
-Frames are decoded lazily while iterating; a :class:`Sequence` holds only the
-list of file names (or the video path), never the images. Frames that cannot be
+Frames are decoded lazily while iterating (or one at a time for random access
+with :meth:`Sequence.read_frame` / :class:`FrameReader`); a :class:`Sequence`
+holds only the list of file names (or the video path), never the images. Frames that cannot be
 used (unreadable, truncated, empty, or of a size different from the first
 frame) come out as :class:`vo.frames.FrameSkip` instead of raising: its
 ``source`` is the file (or ``video#index``), its ``reason`` says what is wrong.
@@ -32,6 +37,7 @@ frame) come out as :class:`vo.frames.FrameSkip` instead of raising: its
 
 from __future__ import annotations
 
+import os
 import queue
 import re
 import threading
@@ -43,6 +49,7 @@ import numpy as np
 from trianflow_vo.errors import InputError
 from trianflow_vo.frames import Frame, FrameSkip, Shortfall
 from trianflow_vo.io import calib as _calib
+from trianflow_vo.io import kitti_raw as _kitti_raw
 
 IMAGE_EXTENSIONS = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"})
 # video container suffixes accepted as a video input (anything else is refused, not probed)
@@ -50,7 +57,7 @@ VIDEO_EXTENSIONS = frozenset({".mp4", ".m4v", ".mov", ".avi", ".mkv", ".webm", "
                               ".asf", ".flv", ".ts", ".mts", ".m2ts", ".3gp", ".ogv", ".mxf", ".vob"})
 EXPECTED_INPUT = ("expected a sequence folder (KITTI or TUM), an image folder or a video file "
                   "(.mp4, .mov, .avi, .mkv, .webm, ...)")
-KINDS = ("kitti", "tum", "images", "video")
+KINDS = ("kitti", "kitti_raw", "tum", "images", "video")
 # sub-folders searched when an "images" folder holds no images itself
 IMAGE_SUBFOLDERS = ("color", "images", "image", "rgb", "frames")
 
@@ -111,8 +118,8 @@ class Sequence:
     """A selected range of frames from one source, streamed on iteration.
 
     Attributes:
-        kind: ``"kitti"``, ``"tum"``, ``"images"`` or ``"video"``.
-        path: the sequence folder (KITTI/TUM/images) or the video file.
+        kind: ``"kitti"``, ``"kitti_raw"``, ``"tum"``, ``"images"`` or ``"video"``.
+        path: the sequence folder (KITTI/KITTI raw drive/TUM/images) or the video file.
         K: ``(3, 3)`` float64 intrinsics at the source resolution.
         K_source: where ``K`` came from, e.g. ``"calib.txt:P0"``, ``"--intrinsics"``.
         image_size: ``(H, W)`` of the first readable selected frame; frames of
@@ -170,6 +177,20 @@ class Sequence:
 
     def __len__(self) -> int:
         return len(self.indices)
+
+    @property
+    def files(self) -> tuple[Path, ...] | None:
+        """The image files of the whole source in order (source index -> file); None for a video."""
+        return None if self._files is None else tuple(self._files)
+
+    def read_frame(self, index: int) -> Frame | FrameSkip:
+        """Decode source frame ``index`` (any index in ``range(n_source_frames)``) on its own.
+
+        A one-shot :class:`FrameReader`: for many reads from a video keep a reader instead
+        (it keeps the capture open). Raises ``IndexError`` outside the source.
+        """
+        with FrameReader(self) as reader:
+            return reader.read(index)
 
     def timestamp(self, index: int) -> float | None:
         """Timestamp (s) of source frame ``index`` for file-based kinds, None if unknown."""
@@ -245,6 +266,125 @@ class Sequence:
         """The video ended at source frame ``decoded`` before ``self.end``: record the shortfall."""
         missing = sum(1 for k in self.indices if k >= decoded)
         self.shortfall = Shortfall(str(self.path), decoded, self.n_source_frames, missing)
+
+
+class FrameReader:
+    """Random access to the source frames of a :class:`Sequence`: :meth:`read` one index.
+
+    Image files are decoded per call (no state). For a video, one ``cv2.VideoCapture``
+    is kept, opened lazily by the process that reads: a reader pickled into (or forked
+    into) a data-loader worker opens its own capture there, never shares one. Reading
+    forwards a few frames grabs them; any other jump seeks (``CAP_PROP_POS_FRAMES``).
+    Frames of a size other than ``seq.image_size`` come out as :class:`FrameSkip`, as
+    in iteration (``seq.K`` would not fit them).
+    """
+
+    # forward jumps up to this many frames are decoded through instead of seeking
+    MAX_GRAB = 16
+
+    def __init__(self, seq: Sequence):
+        self.seq = seq
+        self._cap = None
+        self._pid: int | None = None
+        self._next: int | None = None  # source index the capture returns next, None: unknown
+        self._fps = 0.0
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state.update(_cap=None, _pid=None, _next=None)
+        return state
+
+    def __enter__(self) -> FrameReader:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Release the video capture of this process (the reader stays usable: it reopens)."""
+        self._drop_capture()
+
+    def _drop_capture(self) -> None:
+        if self._cap is not None:
+            if self._pid == os.getpid():
+                self._cap.release()
+            else:
+                _keep_forever(self._cap)
+        self._cap, self._pid, self._next = None, None, None
+
+    def read(self, index: int) -> Frame | FrameSkip:
+        """Source frame ``index`` as a :class:`Frame` (``(H, W, 3)`` uint8 BGR), or a
+        :class:`FrameSkip` with the reason; never raises for a bad file. Raises
+        ``IndexError`` for an index outside ``range(seq.n_source_frames)``."""
+        n = self.seq.n_source_frames
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < n:
+            raise IndexError(f"frame index {index!r} outside the source's {n} frames")
+        index = int(index)
+        H, W = self.seq.image_size
+        if self.seq.kind == "video":
+            img, reason, t = self._read_video(index)
+            src = f"{self.seq.path}#{index}"
+        else:
+            path = self.seq._files[index]
+            img, reason = decode_image(path)
+            t, src = self.seq.timestamp(index), str(path)
+        if img is None:
+            return FrameSkip(index=index, source=src, reason=reason)
+        if img.shape[:2] != (H, W):
+            h, w = img.shape[:2]
+            return FrameSkip(index=index, source=src, reason=f"size {w}x{h} differs from the first frame's {W}x{H}")
+        return Frame(index=index, timestamp=t, image=img, source=src)
+
+    def _capture(self):
+        import cv2
+
+        if self._cap is None or self._pid != os.getpid():
+            self._drop_capture()  # one inherited through fork is never freed here (see _keep_forever)
+            self._cap = cv2.VideoCapture(str(self.seq.path))
+            self._pid, self._next = os.getpid(), 0
+            self._fps = self._cap.get(cv2.CAP_PROP_FPS) if self._cap.isOpened() else 0.0
+        return self._cap
+
+    def _read_video(self, index: int) -> tuple[np.ndarray | None, str, float | None]:
+        import cv2
+
+        cap = self._capture()
+        if not cap.isOpened():
+            self.close()
+            return None, "video cannot be opened", None
+        try:
+            if self._next is None or not self._next <= index <= self._next + self.MAX_GRAB:
+                cap.set(cv2.CAP_PROP_POS_FRAMES, index)
+                self._next = index
+            while self._next < index:
+                if not cap.grab():
+                    self._next = None
+                    return None, f"video ended before frame {index} (container states {self.seq.n_source_frames})", None
+                self._next += 1
+            ok, img = cap.read()
+        except cv2.error as e:
+            self._next = None
+            return None, f"cannot decode video frame ({' '.join(str(e).split())[:120]})", None
+        if not ok or img is None:
+            self._next = None
+            return None, f"video ended before frame {index} (container states {self.seq.n_source_frames})", None
+        self._next = index + 1
+        if img.ndim == 2:
+            img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+        return img, "", _video_time(cap, index, self._fps)
+
+
+def _keep_forever(obj) -> None:
+    """Never free ``obj``: a ``cv2.VideoCapture`` inherited through ``fork``.
+
+    Its FFmpeg decoder and scaler own worker threads that exist only in the parent;
+    freeing them in the child waits for those threads and never returns (seen with
+    ``libswscale``'s slice threads). One extra reference makes the child leave it alone
+    (the parent's own copy is unaffected).
+    """
+    import ctypes
+
+    ctypes.pythonapi.Py_IncRef(ctypes.py_object(obj))
 
 
 def _video_time(cap, index: int, fps: float) -> float | None:
@@ -409,6 +549,32 @@ def _open_kitti(folder, image_dir, intrinsics, calib, start, end, stride) -> Seq
     return _open_files("kitti", folder, files, times, K_src, start, end, stride, image_dir)
 
 
+def _open_kitti_raw(drive, intrinsics, calib, start, end, stride) -> Sequence:
+    if _kitti_raw.is_extract_drive(drive):
+        raise InputError("an unrectified KITTI raw drive (_extract): its images do not fit P_rect; "
+                         "give the _sync drive", drive)
+    image_dir = _kitti_raw.drive_image_dir(drive)
+    files = list_images(image_dir)
+    if not files:
+        raise InputError("no images (png/jpg/jpeg/bmp/tif) in the KITTI raw camera folder", image_dir)
+    cam = _kitti_raw.camera_of(image_dir)
+    K_src = _override_K(intrinsics, calib, f"P{int(cam)}")
+    if K_src is None:
+        calib_file = _kitti_raw.calib_file_for(drive)
+        if calib_file is None:
+            raise _no_intrinsics(drive, f"no {_kitti_raw.CALIB_NAME} in the date folder {drive.parent.name}/ "
+                                        "nor in the drive folder")
+        K_src = _kitti_raw.rect_intrinsics(calib_file, cam)[0], f"{_kitti_raw.CALIB_NAME}:P_rect_{cam}"
+    times = None
+    times_file = image_dir.parent / "timestamps.txt"
+    if times_file.is_file():
+        times = _kitti_raw.read_timestamps(times_file)
+        if len(times) != len(files):
+            raise InputError(f"{len(times)} timestamps for {len(files)} images in {image_dir.parent.name}/data/",
+                             times_file)
+    return _open_files("kitti_raw", drive, files, times, K_src, start, end, stride, image_dir)
+
+
 def _open_tum(folder, intrinsics, calib, start, end, stride) -> Sequence:
     list_file = folder / "rgb.txt"
     files, times = _read_tum_list(list_file)
@@ -498,7 +664,7 @@ def open_sequence(
     end: int | None = None,
     stride: int = 1,
 ) -> Sequence:
-    """Open ``path`` as a KITTI, TUM, image-folder or video sequence.
+    """Open ``path`` as a KITTI (odometry or raw drive), TUM, image-folder or video sequence.
 
     Args:
         path: sequence folder or video file.
@@ -542,6 +708,8 @@ def open_sequence(
         return _open_kitti(p, image_dir, intrinsics, calib_p, start, end, stride)
     if re.fullmatch(r"image_\d+", p.name) and (p.parent / "calib.txt").is_file():
         return _open_kitti(p.parent, p, intrinsics, calib_p, start, end, stride)
+    if not list_images(p) and _kitti_raw.is_drive(p):
+        return _open_kitti_raw(p, intrinsics, calib_p, start, end, stride)
     return _open_images(p, intrinsics, calib_p, start, end, stride)
 
 
