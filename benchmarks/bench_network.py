@@ -20,6 +20,19 @@ peak RSS of a fresh process per variant, onnxruntime settings on the split graph
 int8 against fp32 on real frames (flow end-point error, depth relative error):
 
     python benchmarks/bench_network.py --split --pairs 8 --threads 2 --append-md
+
+``--costvol``: the matrix-product cost volume (``models/pwc.py: cost_volume``) against the
+reference formulation (``cost_volume_reference``: 81 slice/multiply/mean per level), with the
+same seed-0 weights: the cost volume alone per pyramid level in onnxruntime, the split fp32
+and int8 paths interleaved pair by pair (``split-ref``, ``split-new``, ``int8-ref``,
+``int8-new``), new - reference flow, int8 against its own fp32, and one torch training step
+(forward + backward, batch 2) per formulation in a fresh process (time, peak RSS):
+
+    python benchmarks/bench_network.py --costvol --pairs 8 --threads 2 --models M --int8-models Q --append-md
+
+(``--models`` / ``--int8-models``: exports made with the reference cost volume; default:
+exported here with it. ``--new-models`` / ``--new-int8-models``: the same with the current
+code; default: exported here.)
 """
 
 from __future__ import annotations
@@ -323,7 +336,7 @@ def _make_variant(name: str, dirs: dict, threads: int):
     from trianflow_vo.depth.onnx_depth import OnnxDepthNet
     from trianflow_vo.flow.onnx_flow import OnnxFlow
 
-    d = dirs["int8"] if name == "split-int8" else dirs["fp32"]
+    d = dirs.get(name) or (dirs["int8"] if name == "split-int8" else dirs["fp32"])  # a variant's own dir first
     flow = OnnxFlow(d / "flow.onnx", threads=threads, split=(name != "single"))
     return flow, OnnxDepthNet(d / "depth.onnx", threads=threads)
 
@@ -567,6 +580,294 @@ def main_split(args, size, frames) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------
+# --costvol: the matrix-product cost volume against the reference formulation
+
+COSTVOL_VARIANTS = ("split-ref", "split-new", "int8-ref", "int8-new")
+
+
+def _export_with(cost_fn_name: str, out_dir: Path, size, quantize: bool, calibration) -> None:
+    """Seed-0 random-init export into ``out_dir`` with ``pwc.<cost_fn_name>`` as the cost volume."""
+    from unittest import mock
+
+    from trianflow_vo.models import pwc
+    from trianflow_vo.models.checkpoint import checkpoint_from_dict, random_checkpoint
+    from trianflow_vo.models.export import export_checkpoint
+
+    ckpt = checkpoint_from_dict(random_checkpoint(0, size), "<random-init>")
+    with mock.patch.object(pwc, "cost_volume", getattr(pwc, cost_fn_name)), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        export_checkpoint(ckpt, out_dir, size, 0, quantize="int8" if quantize else None,
+                          calibration=calibration if quantize else None)
+
+
+def _calibration(seq: Path, n: int = 8) -> list[np.ndarray]:
+    """What ``export --calibration SEQ`` reads: the first ``n`` frames, BGR, original size."""
+    folder = seq / "image_0" if (seq / "image_0").is_dir() else seq
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))[:n]
+    return [cv2.imread(str(p), cv2.IMREAD_COLOR) for p in files]
+
+
+def _decoder_ops(model_dir: Path) -> dict:
+    """Node counts of the cost-volume ops in ``model_dir``'s flow decoder (which formulation it is)."""
+    import onnx
+
+    ops = [n.op_type for n in onnx.load(str(model_dir / "flow_decoder.onnx"), load_external_data=False).graph.node]
+    return {op: ops.count(op) for op in ("MatMul", "ReduceMean", "Slice", "Mul", "GridSample")} | {"nodes": len(ops)}
+
+
+def bench_costvol_levels(size, threads: int, repeats: int, tmp: Path) -> list[dict]:
+    """Cost volume alone (fp32 ONNX graph, batch 2 as in the decoder) per pyramid level: median ms."""
+    import onnxruntime as ort
+    import torch
+
+    from trianflow_vo.models.export import OPSET
+    from trianflow_vo.models.pwc import PWCConfig, cost_volume, cost_volume_reference
+
+    class _CV(torch.nn.Module):
+        def __init__(self, fn, d):
+            super().__init__()
+            self.fn, self.d = fn, d
+
+        def forward(self, a, b):
+            return self.fn(a, b, self.d)
+
+    cfg = PWCConfig()
+    h, w = size
+    rng = np.random.default_rng(0)
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = 1
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")  # the run path's settings
+    rows = []
+    for lvl in range(len(cfg.pyramid_channels), cfg.output_level - 1, -1):
+        shape = (2, cfg.pyramid_channels[lvl - 1], h >> lvl, w >> lvl)
+        feed = {"a": rng.standard_normal(shape).astype(np.float32), "b": rng.standard_normal(shape).astype(np.float32)}
+        sessions, ref_out = {}, None
+        for name, fn in (("ref", cost_volume_reference), ("new", cost_volume)):
+            path = tmp / f"cv_{name}_L{lvl}.onnx"
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                torch.onnx.export(_CV(fn, cfg.search_range), tuple(torch.from_numpy(v) for v in feed.values()),
+                                  str(path), input_names=["a", "b"], output_names=["cost"], opset_version=OPSET,
+                                  dynamo=False)
+            sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+            out = sess.run(None, feed)[0]
+            ref_out = out if ref_out is None else ref_out
+            sessions[name] = (sess, [], float(np.abs(out - ref_out).max()))
+        for _ in range(repeats):
+            for sess, t, _ in sessions.values():
+                t.append(_timed(sess.run, None, feed)[1])
+        r, n = _median_ms(sessions["ref"][1]), _median_ms(sessions["new"][1])
+        rows.append({"level": lvl, "shape": list(shape), "ref_ms": r, "new_ms": n, "ratio_new_over_ref": n / r,
+                     "max_abs_diff": sessions["new"][2]})
+    return rows
+
+
+def flow_difference(dir_a: Path, dir_b: Path, frames, threads: int) -> dict:
+    """Max and median |flow_b - flow_a| (working pixels, both directions) over consecutive pairs."""
+    from trianflow_vo.flow.onnx_flow import OnnxFlow
+
+    fa, fb = OnnxFlow(dir_a / "flow.onnx", threads=threads), OnnxFlow(dir_b / "flow.onnx", threads=threads)
+    diffs = []
+    for a, b in zip(frames[:-1], frames[1:]):
+        ra = fa.flow_pair(fa.prepare(a), fa.prepare(b))
+        rb = fb.flow_pair(fb.prepare(a), fb.prepare(b))
+        diffs += [np.abs(y - x).ravel() for x, y in zip(ra, rb)]
+    d = np.concatenate(diffs)
+    return {"max_px": float(d.max()), "median_px": float(np.median(d))}
+
+
+def _train_step_worker(cost_fn_name: str, size, batch: int, threads: int, steps: int) -> None:
+    """One process: PWCNet (paper sizes) forward of ``batch`` pairs + backward of a loss on all
+    decoded levels, ``steps`` times; prints JSON (median s per step, peak RSS MB)."""
+    from unittest import mock
+
+    import torch
+
+    from trianflow_vo.models import pwc
+
+    torch.set_num_threads(threads)
+    torch.manual_seed(0)
+    net = pwc.PWCNet().train()
+    h, w = size
+    img1, img2 = torch.rand(batch, 3, h, w), torch.rand(batch, 3, h, w)
+    base = _rss_mb()["rss"]
+    times = []
+    with mock.patch.object(pwc, "cost_volume", getattr(pwc, cost_fn_name)):
+        for _ in range(steps):
+            t = time.perf_counter()
+            flows = net(img1, img2)
+            loss = sum(f.abs().mean() for f in flows)
+            loss.backward()
+            times.append(time.perf_counter() - t)
+            net.zero_grad(set_to_none=True)
+            del flows, loss
+    print(json.dumps({"step_ms": _median_ms(times), "first_step_ms": 1000 * times[0], "base_rss_mb": base,
+                      "peak_rss_mb": _rss_mb()["peak"]}))
+
+
+def train_step(cost_fn_name: str, size, batch: int, threads: int, steps: int) -> dict:
+    import subprocess
+
+    code = (f"import sys; sys.argv=['x']; sys.path.insert(0, {str(REPO)!r});"
+            "from benchmarks.bench_network import _train_step_worker; "
+            f"_train_step_worker({cost_fn_name!r}, {list(size)!r}, {batch}, {threads}, {steps})")
+    out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def _markdown_costvol(res: dict) -> str:
+    v = res["variants_ms"]
+    names = list(v)
+    lines = [
+        f"## Cheaper cost volume ({res['date']}, {res['size_hw'][0]}x{res['size_hw'][1]})",
+        "",
+        f"`{res['command']}` on {res['machine']} ({res['cpu_count']} cores, {res['cpu_flags']}), "
+        f"{res['threads']} threads, {res['pairs']} pairs of `{res['seq']}`, random seed-0 weights (the same in "
+        f"every column), onnxruntime {res['versions']['onnxruntime']}, torch {res['versions']['torch']}. "
+        f"Load average at start / end: {res['load_average']} / {res['load_average_end']}.",
+        "",
+        "`models/pwc.py: cost_volume` is now computed with matrix products: per `dy` one batched MatMul of "
+        "8-pixel tiles of `f1` (8 x C) with the `f2` columns their shifts reach (C x 16), the 9 wanted dot "
+        "products taken from the band by a pad + reshape; the old formulation (81 slice + multiply + channel "
+        "mean per level) is kept as `cost_volume_reference`. Same function (max difference below).",
+        "",
+        "Cost volume alone (fp32 ONNX graph, batch 2 = both directions, the run path's session settings), "
+        "interleaved, median ms per call:",
+        "",
+        "| level | f1, f2 shape | reference | new | new / ref | max abs diff |",
+        "|---|---|---:|---:|---:|---:|",
+    ]
+    tr = tn = 0.0
+    for r in res["costvol_levels"]:
+        tr, tn = tr + r["ref_ms"], tn + r["new_ms"]
+        lines.append(f"| {r['level']} | {'x'.join(map(str, r['shape']))} | {r['ref_ms']:.2f} | {r['new_ms']:.2f} | "
+                     f"{r['ratio_new_over_ref']:.2f} | {r['max_abs_diff']:.1e} |")
+    lines += [f"| **all levels** | | **{tr:.1f}** | **{tn:.1f}** | **{tn / tr:.2f}** | |", "",
+              "Network path per pair, variants interleaved pair by pair (`ref` = exported with the reference "
+              "cost volume, `new` = with the current code; int8 = `export --quantize int8 --calibration "
+              "sample/kitti00`), median ms:", "",
+              "| stage (median ms per pair) | " + " | ".join(names) + " |", "|---|" + "---:|" * len(names)]
+    labels = {"prepare_encoder": "prepare + encoder", "flow": "flow decoder (fw+bw)", "depth": "depth",
+              "masks": "masks (numpy)", "total": "**total per pair**"}
+    for k, label in labels.items():
+        cells = [f"{v[n][k]:.1f}" for n in names]
+        if k == "total":
+            cells = [f"**{c}**" for c in cells]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    ops = res["decoder_ops"]
+    lines.append("| decoder nodes (MatMul / ReduceMean / Slice / Mul) | " + " | ".join(
+        f"{ops[n]['nodes']} ({ops[n]['MatMul']} / {ops[n]['ReduceMean']} / {ops[n]['Slice']} / {ops[n]['Mul']})"
+        for n in names) + " |")
+    rt = res["ratios"]
+    lines += ["", f"Ratios in this run: fp32 decoder new / ref **{rt['fp32_decoder']:.2f}**, fp32 total "
+              f"{rt['fp32_total']:.2f}; int8 decoder new / ref **{rt['int8_decoder']:.2f}**, int8 total per pair "
+              f"**{rt['int8_total']:.2f}** ({v['int8-new']['total']:.1f} vs {v['int8-ref']['total']:.1f} ms).", ""]
+    fd = res["flow_new_minus_ref"]
+    lines += [f"Flow new - reference (fp32 split graphs, same weights, {res['pairs']} pairs, both directions): "
+              f"max {fd['max_px']:.1e} px, median {fd['median_px']:.1e} px.", ""]
+    if res.get("int8_accuracy"):
+        lines += ["int8 against its own fp32 (working pixels; random weights, see the caveat above):", "",
+                  "| cost volume | sequence | flow EPE median px | EPE mean | EPE p99 | depth rel. err. median |",
+                  "|---|---|---:|---:|---:|---:|"]
+        for name, rows in res["int8_accuracy"].items():
+            for r in rows:
+                lines.append(f"| {name} | `{r['seq']}` | {r['flow_epe_median_px']:.4f} | {r['flow_epe_mean_px']:.4f} "
+                             f"| {r['flow_epe_p99_px']:.4f} | {r['depth_rel_err_median']:.4f} |")
+        lines.append("")
+    t = res["train_step"]
+    lines += [f"Training step in torch (PWCNet paper sizes, `train()`, batch {t['batch']} at "
+              f"{res['size_hw'][0]}x{res['size_hw'][1]}: forward of all levels + backward of a loss on them, "
+              f"{t['steps']} steps, each formulation in a fresh process, {res['threads']} threads):", "",
+              "| cost volume | step ms (median) | peak RSS MB | RSS before the step MB |", "|---|---:|---:|---:|"]
+    for name in ("reference", "new"):
+        r = t[name]
+        lines.append(f"| {name} | {r['step_ms']:.0f} | {r['peak_rss_mb']:.0f} | {r['base_rss_mb']:.0f} |")
+    lines += ["", res.get("notes", ""), ""]
+    return "\n".join(lines)
+
+
+def main_costvol(args, size, frames) -> int:
+    """``--costvol``: matrix-product cost volume vs the reference formulation (see the module docstring)."""
+    import datetime
+
+    import onnxruntime
+    import torch
+
+    with tempfile.TemporaryDirectory() as tmp_s:
+        tmp = Path(tmp_s)
+        calib = _calibration(REPO / "sample" / "kitti00")
+        dirs = {"split-ref": args.models, "int8-ref": args.int8_models,
+                "split-new": args.new_models, "int8-new": args.new_int8_models}
+        for name, d in list(dirs.items()):
+            if d is None:
+                dirs[name] = tmp / name
+                print(f"exporting {name} ...", flush=True)
+                _export_with("cost_volume_reference" if name.endswith("-ref") else "cost_volume", dirs[name], size,
+                             name.startswith("int8"), calib)
+        ops = {n: _decoder_ops(d) for n, d in dirs.items()}
+        for n, o in ops.items():  # the directories hold what their names say
+            if (o["ReduceMean"] > 0) != n.endswith("-ref"):
+                raise SystemExit(f"{dirs[n]}: its flow decoder does not use the {n.split('-')[1]} cost volume: {o}")
+        load = os.getloadavg()
+        print("cost volume alone, per level ...", flush=True)
+        levels = bench_costvol_levels(size, args.threads, max(10, 3 * args.pairs), tmp)
+        print("variants, interleaved ...", flush=True)
+        variants = bench_variants(dirs, frames, args.threads, list(COSTVOL_VARIANTS))
+        print("flow new - reference, int8 accuracy ...", flush=True)
+        fdiff = flow_difference(dirs["split-ref"], dirs["split-new"], frames, args.threads)
+        acc = {}
+        for kind in ("ref", "new"):
+            acc[kind] = int8_accuracy({"fp32": dirs[f"split-{kind}"], "int8": dirs[f"int8-{kind}"]}, [args.seq],
+                                      size, args.threads, args.pairs)
+        print("torch training step, fresh processes ...", flush=True)
+        train = {"batch": args.train_batch, "steps": 3}
+        for name, fn in (("reference", "cost_volume_reference"), ("new", "cost_volume")):
+            train[name] = train_step(fn, size, args.train_batch, args.threads, 3)
+        load_end = os.getloadavg()
+    flags = Path("/proc/cpuinfo").read_text().split("flags", 1)[-1].split("\n", 1)[0].split()
+    simd = ", ".join(f for f in ("avx2", "avx512f", "avx512_vnni", "avx_vnni", "amx_int8") if f in flags)
+    v = variants
+    res = {
+        "date": datetime.date.today().isoformat(),
+        "command": "python benchmarks/bench_network.py " + " ".join(args.argv),
+        "machine": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(), "cpu_flags": simd,
+        "load_average": [round(x, 2) for x in load], "load_average_end": [round(x, 2) for x in load_end],
+        "threads": args.threads, "pairs": args.pairs,
+        "seq": str(args.seq.relative_to(REPO)) if args.seq.is_relative_to(REPO) else str(args.seq),
+        "size_hw": list(size), "versions": {"onnxruntime": onnxruntime.__version__, "torch": torch.__version__},
+        "model_dirs": {n: str(d) for n, d in dirs.items()}, "decoder_ops": ops,
+        "costvol_levels": levels, "variants_ms": variants,
+        "ratios": {"fp32_decoder": v["split-new"]["flow"] / v["split-ref"]["flow"],
+                   "fp32_total": v["split-new"]["total"] / v["split-ref"]["total"],
+                   "int8_decoder": v["int8-new"]["flow"] / v["int8-ref"]["flow"],
+                   "int8_total": v["int8-new"]["total"] / v["int8-ref"]["total"]},
+        "flow_new_minus_ref": fdiff, "int8_accuracy": acc, "train_step": train, "target_ms": 300.0,
+    }
+    for r in levels:
+        print(f"L{r['level']} {r['shape']}: ref {r['ref_ms']:.2f} ms  new {r['new_ms']:.2f} ms  "
+              f"ratio {r['ratio_new_over_ref']:.2f}  max diff {r['max_abs_diff']:.1e}")
+    for n, x in v.items():
+        print(f"{n:10s} " + "  ".join(f"{k} {y:.1f}" for k, y in x.items()))
+    print("ratios new/ref: " + "  ".join(f"{k} {y:.3f}" for k, y in res["ratios"].items()))
+    print(f"flow new - ref: {fdiff}")
+    for k, rows in acc.items():
+        for r in rows:
+            print(f"int8 {k}: {json.dumps(r)}")
+    for name in ("reference", "new"):
+        print(f"train step {name}: {train[name]}")
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(res, indent=2))
+    if args.append_md:
+        with open(args.md, "a") as fh:
+            fh.write("\n" + _markdown_costvol(res))
+        print(f"wrote {args.json}, appended to {args.md}")
+    else:
+        print(f"wrote {args.json}")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seq", type=Path, default=REPO / "sample" / "kitti00")
@@ -585,7 +886,16 @@ def main(argv=None) -> int:
     ap.add_argument("--int8-models", type=Path, default=None,
                     help="with --split: directory of an 'export --quantize int8' (default: export one)")
     ap.add_argument("--no-int8", action="store_true", help="with --split: skip the int8 variant")
-    ap.add_argument("--append-md", action="store_true", help="with --split: append the section to --md")
+    ap.add_argument("--append-md", action="store_true", help="with --split / --costvol: append the section to --md")
+    ap.add_argument("--costvol", action="store_true",
+                    help="matrix-product cost volume vs the reference formulation: per level, split fp32/int8 "
+                         "paths interleaved, flow difference, torch training step (--models / --int8-models: "
+                         "exports with the reference cost volume)")
+    ap.add_argument("--new-models", type=Path, default=None,
+                    help="with --costvol: fp32 export made with the current code (default: export one)")
+    ap.add_argument("--new-int8-models", type=Path, default=None,
+                    help="with --costvol: int8 export made with the current code (default: export one)")
+    ap.add_argument("--train-batch", type=int, default=2, help="with --costvol: batch of the torch training step")
     args = ap.parse_args(argv)
     args.argv = list(argv if argv is not None else sys.argv[1:])
     if args.render is not None:
@@ -595,6 +905,10 @@ def main(argv=None) -> int:
     size = tuple(int(v) for v in args.size.split("x"))
     frames = _load_frames(args.seq, args.pairs + 1, size)
     cv2.setNumThreads(args.threads)
+    if args.costvol:
+        if args.json == REPO / "benchmarks" / "out" / "network.json":
+            args.json = REPO / "benchmarks" / "out" / "network_costvol.json"
+        return main_costvol(args, size, frames)
     if args.split:
         if args.json == REPO / "benchmarks" / "out" / "network.json":
             args.json = REPO / "benchmarks" / "out" / "network_split.json"
