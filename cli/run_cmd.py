@@ -9,6 +9,9 @@ from pathlib import Path
 
 import click
 
+# the configuration rule (SHORTCUTS, build_config) is shared with `batch`; the names stay importable from here
+from trianflow_vo.cli.config_flags import SHORTCUTS, build_config  # noqa: F401
+from trianflow_vo.cli.config_flags import shortcut_dict as _shortcut_dict  # noqa: F401
 from trianflow_vo.cli.errors import user_errors
 from trianflow_vo.cli.options import parse_size
 from trianflow_vo.observer import Observer
@@ -83,41 +86,6 @@ class Progress(Observer):
         self._draw(final=True)  # skipped frames after the last processed one count too
         if self.enabled:
             click.echo("", err=True)
-
-
-# shortcut flag -> configuration key (a flag given on the command line wins over --config and --set)
-SHORTCUTS = {
-    "stride": "input.stride", "start": "input.start", "end": "input.end", "size": "input.size",
-    "intrinsics": "input.intrinsics", "calib": "input.calib",
-    "flow_model": "flow.model", "dis_preset": "flow.dis_preset", "depth_model": "depth.model",
-    "scale_from": "scale.source",
-    "n_samples": "sampling.n_samples", "seed": "sampling.seed", "min_parallax_px": "keyframes.min_parallax_px",
-    "threads": "runtime.threads", "gt": "output.gt", "rerun_path": "output.rerun", "rerun_spawn": "output.rerun_spawn",
-}
-
-
-def _shortcut_dict(values: dict) -> dict:
-    """Nested config dict of the shortcut flags that were given (None = not given)."""
-    out: dict = {}
-    for name, key in SHORTCUTS.items():
-        v = values.get(name)
-        if v is None or v is False:
-            continue
-        section, field = key.split(".")
-        out.setdefault(section, {})[field] = list(v) if isinstance(v, tuple) else (str(v) if isinstance(v, Path) else v)
-    return out
-
-
-def build_config(config_file: str | None, overrides: tuple[str, ...], shortcuts: dict, no_plot: bool):
-    """defaults < ``--config`` < ``--set`` < explicit shortcut flags."""
-    from trianflow_vo.config import Config, apply_overrides, load_config, merge_dict
-
-    config = load_config(config_file) if config_file else Config()
-    config = apply_overrides(config, overrides)
-    flags = _shortcut_dict(shortcuts)
-    if no_plot:
-        flags.setdefault("output", {})["plot"] = False
-    return merge_dict(config, flags, "command-line flags") if flags else config
 
 
 def default_out_dir(seq: Path) -> Path:
