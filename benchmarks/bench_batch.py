@@ -68,7 +68,7 @@ def overhead(seq: Path, repeats: int, size: str | None, threads: int) -> dict:
                                                                   if size else [])
     cli, task, inside_task, inside_cli = [], [], [], []
     t = time.perf_counter()
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
     t_init = time.perf_counter() - t
     try:
         for _ in range(repeats):
@@ -110,7 +110,7 @@ def scaling(specs, repeats: int, size: str | None) -> dict:
     walls: dict[str, list[float]] = {k: [] for k in variants}
     shares: dict[str, list[float]] = {k: [] for k in variants}
     frames: dict[str, int] = {}
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
     try:
         for rep in range(repeats):
             order = list(variants) if rep % 2 == 0 else list(reversed(variants))

@@ -116,9 +116,10 @@ Examples:
               help="Run every sequence with each value (repeatable: the cartesian product of all sweeps).")
 @click.option("--workers", type=click.IntRange(min=1), default=None,
               help="Runs at once (default: CPU cores / runtime.threads; on a cluster its CPUs / threads).")
-@click.option("--address", default=None, metavar="auto|ray://HOST:PORT",
-              help="Join a running Ray cluster instead of starting one here; the data, models and --out must be "
-                   "visible to every worker at the same paths.")
+@click.option("--address", default=None, metavar="auto|HOST:PORT|ray://HOST:PORT",
+              help="Join a running Ray cluster (`ray start --head`) instead of starting one here: auto (RAY_ADDRESS "
+                   "or the cluster started on this machine), its GCS address, or its Ray Client address. The data, "
+                   "models and --out must be visible to every worker at the same paths.")
 @click.option("--timeout", type=click.FloatRange(min=0.0, min_open=True), default=None, metavar="S",
               help="Stop a run after S seconds (from its task's submission, worker start included): it is failed.")
 @click.option("--force", is_flag=True, help="Run again the jobs whose folder already holds a completed run "
@@ -197,9 +198,10 @@ def batch(seqs, manifest, out_dir, config_file, overrides, sweeps, workers, addr
         except KeyboardInterrupt as exc:  # before the runner could collect its rows
             stopped, results = exc, []
         except Exception as exc:  # Ray could not start or join the cluster, ...
+            from trianflow_vo.errors import VOError
             from trianflow_vo.pipeline import failure_reason
 
-            problem, results = failure_reason(exc), []
+            problem, results = (str(exc) if isinstance(exc, VOError) else failure_reason(exc)), []
         finally:
             line.close()
         by_dir = {r["out_dir"]: r for r in results if r is not None}

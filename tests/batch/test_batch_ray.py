@@ -37,7 +37,7 @@ def ray_local():
     mp = pytest.MonkeyPatch()
     mp.setenv("RAY_USAGE_STATS_ENABLED", "0")
     handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
     yield ray
     ray.shutdown()
     for s, h in handlers.items():  # ray.init installs its own; later tests expect the defaults
@@ -147,6 +147,25 @@ def test_crashed_worker_fails_alone(ray_local, shared_data, tmp_path):
     ok, crashed = run_batch(jobs, tmp_path / "b", workers=2, job_fn=crash_or_run)
     assert ok["status"] == "completed" and ok["frames"] == 7
     assert crashed["status"] == "failed" and crashed["reason"].startswith("worker crashed")
+
+
+def test_fresh_process_per_job_and_progress(ray_local, shared_data, tmp_path):
+    """One worker, two jobs (a sweep): each job in its own process (max_calls=1); the progress snapshots
+    never show more runs than workers and end with every job counted and its frames."""
+    seq = shared_data / "kitti06-f0000-0050"
+    jobs = expand_jobs(sequences_from_args([seq]), overrides=[*SMALL_SET, "input.stride=8"],
+                       sweeps=[("sampling.seed", ["0", "1"])])
+    snaps = []
+    rows = run_batch(jobs, tmp_path / "b", workers=1, on_progress=snaps.append)
+    assert [r["status"] for r in rows] == ["completed", "completed"]
+    assert [Path(r["out_dir"]).relative_to(tmp_path / "b").as_posix() for r in rows] == \
+        ["kitti06-f0000-0050/sampling.seed=0", "kitti06-f0000-0050/sampling.seed=1"]
+    assert rows[0]["pid"] != rows[1]["pid"] and os.getpid() not in (rows[0]["pid"], rows[1]["pid"])
+    assert snaps and max(s.running for s in snaps) == 1 and all(s.workers == 1 for s in snaps)
+    assert [s.completed + s.failed for s in snaps] == sorted(s.completed + s.failed for s in snaps)
+    last = snaps[-1]
+    assert (last.total, last.completed, last.failed, last.running, last.pending, last.frames) == (2, 2, 0, 0, 0, 14)
+    assert last.fps is not None and last.fps > 0
 
 
 def test_ray_failure_reasons():

@@ -109,3 +109,16 @@ def test_write_summary_files(tmp_path, results):
     doc = json.loads((tmp_path / "summary.json").read_text())
     assert doc["meta"]["wall_s"] == 10.0 and doc["overall"]["frames"] == 50
     assert doc["results"][0]["eval"]["lengths"] == [10.0, 20.0] and len(doc["rows"]) == 3
+
+
+def test_frames_of_a_killed_run_come_from_the_poses_on_disk(tmp_path):
+    """A run killed between two run.json updates: the summary counts the poses it wrote."""
+    from trianflow_vo.batch.jobs import fill_from_run
+
+    (tmp_path / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 11)
+    row = {"out_dir": str(tmp_path)}
+    fill_from_run(row, {"status": "running", "frames_processed": 0})
+    assert row["frames"] == 11
+    row = {"out_dir": str(tmp_path)}
+    fill_from_run(row, {"status": "completed", "frames_processed": 12})
+    assert row["frames"] == 12  # a closed run's own count stands

@@ -144,6 +144,39 @@ def test_exit_1_when_one_failed_summary_written(monkeypatch, tmp_path):
     assert "b,,failed,boom" in (tmp_path / "o" / "summary.csv").read_text()
 
 
+def test_progress_line_counts_and_rate(monkeypatch, tmp_path):
+    """The live view (not a terminal here: one line whenever the counts change)."""
+    import trianflow_vo.batch.runner as runner
+    from trianflow_vo.batch.jobs import new_result
+
+    def fake(jobs, out_root, configs, **kw):
+        P = runner.BatchProgress
+        kw["on_progress"](P(total=2, completed=0, failed=0, running=2, pending=0, frames=0, elapsed_s=0.5, workers=2))
+        kw["on_progress"](P(total=2, completed=0, failed=0, running=2, pending=0, frames=9, elapsed_s=1.5, workers=2))
+        row = new_result(jobs[1], Path(out_root) / jobs[1].out, "failed", "InputError: b: no images")
+        kw["on_result"](row)
+        kw["on_progress"](P(total=2, completed=0, failed=1, running=1, pending=0, frames=20, elapsed_s=4.0, workers=2))
+        done = new_result(jobs[0], Path(out_root) / jobs[0].out, "completed")
+        kw["on_result"](done)
+        kw["on_progress"](P(total=2, completed=1, failed=1, running=0, pending=0, frames=30, elapsed_s=6.0, workers=2))
+        return [done, row]
+
+    monkeypatch.setattr(runner, "run_batch", fake)
+    monkeypatch.setenv("RAY_USAGE_STATS_ENABLED", "0")
+    r = invoke("batch", tmp_path / "a", tmp_path / "b", "--out", tmp_path / "o")
+    assert r.exit_code == 1
+    lines = r.output.splitlines()
+    assert lines[:4] == [
+        "0/2 done (0 failed), 2 running, 0 pending  0 frames  -- frames/s  0:00",  # the same counts: not repeated
+        "failed: b: InputError: b: no images",
+        "1/2 done (1 failed), 1 running, 0 pending  20 frames  5.0 frames/s  0:04",
+        "2/2 done (1 failed), 0 running, 0 pending  30 frames  5.0 frames/s  0:06",
+    ]
+    assert "workers: 2" in (tmp_path / "o" / "summary.md").read_text()
+    r = invoke("batch", tmp_path / "a", tmp_path / "b", "--out", tmp_path / "o", "-q")
+    assert "frames/s" not in r.output and "failed: b: InputError: b: no images" in r.output
+
+
 def test_runner_that_cannot_start_still_writes_summary(monkeypatch, tmp_path):
     import trianflow_vo.batch.runner as runner
 
@@ -158,6 +191,22 @@ def test_runner_that_cannot_start_still_writes_summary(monkeypatch, tmp_path):
                                  "ray://nowhere:10001")
     text = (tmp_path / "o" / "summary.csv").read_text()
     assert "a,,pending,not run: ConnectionError" in text
+
+
+def test_unreachable_cluster_one_line_at_once(monkeypatch, tmp_path):
+    pytest.importorskip("ray", reason="ray is not installed (pip install 'trianflow-vo[batch]')")
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # closed again: nothing listens there
+    monkeypatch.setenv("RAY_USAGE_STATS_ENABLED", "0")
+    r = invoke("batch", tmp_path / "a", "--out", tmp_path / "o", "--address", f"ray://127.0.0.1:{port}")
+    assert r.exit_code == 1
+    assert one_line_error(r) == ("Error: the batch could not run: cannot reach the Ray cluster at "
+                                 f"ray://127.0.0.1:{port} (Connection refused); is `ray start --head` running there, "
+                                 "and is the port open to this machine?")
+    assert 'a,,pending,"not run: cannot reach the Ray cluster' in (tmp_path / "o" / "summary.csv").read_text()
 
 
 def test_interrupted_batch_exit_130_with_summary(monkeypatch, tmp_path):

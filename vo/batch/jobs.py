@@ -131,10 +131,21 @@ def new_result(job: Job, out_dir: Path, status: str = "failed", reason: str | No
 
 
 def fill_from_run(result: dict, doc: Mapping | None) -> None:
-    """Copy the run's own figures (``run.json`` / the pipeline's summary) into the result."""
+    """Copy the run's own figures (``run.json`` / the pipeline's summary) into the result.
+
+    A run killed before it could close has a ``run.json`` from its last periodic update;
+    its frame count is then the number of poses on disk (``poses.txt`` lines), which is
+    never behind it."""
     if not doc:
         return
     result["frames"] = doc.get("frames_processed")
+    if doc.get("status") != "completed" and result.get("out_dir"):
+        try:
+            with open(Path(result["out_dir"]) / "poses.txt", "rb") as f:
+                on_disk = sum(1 for line in f if line.strip())
+            result["frames"] = max(int(result["frames"] or 0), on_disk)
+        except OSError:
+            pass
     result["frames_skipped"] = doc.get("frames_skipped")
     result["elapsed_s"] = doc.get("elapsed_s")
     result["fps"] = doc.get("fps")
@@ -228,6 +239,12 @@ def run_job(job: Job, out_root: str | Path, config=None, *, force: bool = False)
         result["status"] = "completed"
     except KeyboardInterrupt:
         raise
+    except MemoryError as exc:  # numpy's allocation failure (the kernel's OOM killer is a crashed worker)
+        detail = " ".join(str(exc).split())
+        result["reason"] = (f"out of memory{': ' + detail if detail else ''}; use a smaller working size "
+                            "(input.size), fewer threads or fewer --workers")
+        fill_from_run(result, read_run_json(out_dir))
+        return _done(result, t0)
     except Exception as exc:
         result["reason"] = failure_reason(exc)
         fill_from_run(result, read_run_json(out_dir))

@@ -2,9 +2,11 @@
 timeouts, failures isolated, progress reported through callbacks.
 
 Ray is imported inside the functions (``pip install 'trianflow-vo[batch]'``). Ray is started
-locally (``address=None``) or joined (``"auto"``, ``"ray://host:port"``), and shut down at the
-end only if this call started or joined it; an already initialised Ray (e.g. a test's) is used
-as is and left running.
+locally (``address=None``: always a new instance, even when a cluster runs on this machine) or
+joined (``"auto"``, ``"host:port"``, ``"ray://host:port"``; an address where nothing accepts a
+connection is refused at once), and shut down at the end only if this call started or joined it;
+an already initialised Ray (e.g. a test's) is used as is and left running. The caller's own
+SIGINT/SIGTERM handlers stay in force while the batch runs (``ray.init`` replaces SIGTERM's).
 
 Each job is one Ray task with ``max_calls=1`` (its worker process exits after it, so memory and
 ``peak_rss_mb`` are the run's own; the worker start, ~0.5-1 s, is part of every task) and
@@ -43,6 +45,7 @@ from trianflow_vo.errors import DependencyError, InputError
 
 INSTALL_HINT = "ray is not installed; install the batch extra: pip install 'trianflow-vo[batch]'"
 LIVE_EVERY_S = 1.0  # how often the frames of running jobs are read from their run.json
+REACH_TIMEOUT_S = 5.0  # a cluster address that accepts no connection within this is refused
 
 
 def import_ray():
@@ -65,6 +68,30 @@ def available_cores() -> int:
 def default_workers(cpus: float, threads: int) -> int:
     """Runs at once by default: ``cpus // threads`` (at least 1)."""
     return max(1, int(cpus // max(1, threads)))
+
+
+def check_reachable(address: str, timeout_s: float = REACH_TIMEOUT_S) -> None:
+    """Refuse at once a cluster address (``host:port`` or ``ray://host:port``) where nothing accepts a
+    connection: ``ray.init`` would retry for 30 s (Ray Client) to over 10 minutes (GCS address), printing
+    dozens of lines. ``auto`` and addresses without a port are left to Ray.
+
+    Raises:
+        InputError: naming the address and the socket's reason.
+    """
+    import socket
+
+    target = address[len("ray://"):] if address.startswith("ray://") else address
+    host, sep, port = target.rpartition(":")
+    host = host.strip("[]")
+    if not sep or not host or not port.isdigit():
+        return
+    try:
+        with socket.create_connection((host, int(port)), timeout=timeout_s):
+            pass
+    except OSError as e:
+        why = e.strerror or str(e) or type(e).__name__
+        raise InputError(f"cannot reach the Ray cluster at {address} ({why}); is `ray start --head` running there, "
+                         f"and is the port open to this machine?") from None
 
 
 @dataclass(frozen=True)
@@ -174,7 +201,8 @@ def run_batch(
             before anything runs).
         workers: runs at once; default ``cores // runtime.threads`` locally, ``cluster CPUs // threads``
             on a cluster.
-        address: None = start Ray locally; ``"auto"`` or ``"ray://host:port"`` = join a cluster.
+        address: None = start Ray locally; ``"auto"``, ``"host:port"`` (GCS) or ``"ray://host:port"`` (Ray Client) =
+            join a cluster.
         timeout: seconds per job (None = no limit).
         force: run again jobs whose folder holds a completed run.
         on_progress: called with a :class:`BatchProgress` while the batch runs (about every ``poll_s``).
@@ -191,7 +219,8 @@ def run_batch(
     Raises:
         DependencyError: Ray is not installed.
         ConfigError: a job's configuration is bad (``configs`` None only).
-        InputError: bad ``workers`` / ``timeout``; a job needs more threads than Ray has CPUs.
+        InputError: bad ``workers`` / ``timeout``; a job needs more threads than Ray has CPUs; the cluster
+            address accepts no connection, or the cluster refuses this driver (e.g. its token).
         BatchInterrupted: Ctrl-C or SIGTERM; the rows are in its ``results``.
     """
     ray = import_ray()
@@ -231,10 +260,17 @@ def run_batch(
         init = {"include_dashboard": False, "log_to_driver": False, "logging_level": logging.ERROR}
         if address is None:
             n = workers or default_workers(available_cores(), threads)
-            ray.init(num_cpus=n * threads, **init)
+            ray.init(address="local", num_cpus=n * threads, **init)  # a new local instance, even if one runs here
         else:
-            ray.init(address=address, **init)
+            check_reachable(address)
+            try:
+                ray.init(address=address, **init)
+            except ConnectionError as e:  # reachable, but refused: most often a missing or wrong token
+                what = " ".join(str(e).split()) or f"could not join the Ray cluster at {address}"
+                raise InputError(f"{what}; if the cluster uses token authentication, set RAY_AUTH_MODE=token and "
+                                 "its RAY_AUTH_TOKEN here as on the cluster") from None
         started = True
+    watch = _SignalWatch(handlers)  # the caller's own handlers, back in place after ray.init, noting the signal
     try:
         cpus = ray.cluster_resources().get("CPU", 0)
         if threads > cpus:  # such a task would wait for ever
@@ -301,14 +337,53 @@ def run_batch(
             for r in results:
                 if r is not None:
                     r.setdefault("task_s", None)
-            raise BatchInterrupted(results, getattr(exc, "signum", signal.SIGINT)) from None  # type: ignore[arg-type]
+            signum = getattr(exc, "signum", None) or watch.signum or signal.SIGINT
+            raise BatchInterrupted(results, signum) from None  # type: ignore[arg-type]
     finally:
+        watch.close()
         if started:
             ray.shutdown()
             for s, h in handlers.items():  # the caller's process gets its own handlers back
                 if h is not None:
                     signal.signal(s, h)
     return results  # type: ignore[return-value]
+
+
+class _SignalWatch:
+    """While a batch runs (main thread only): the caller's own SIGINT/SIGTERM handlers (``handlers``, as they
+    were before ``ray.init``) are installed again, wrapped so that the signal number is noted in ``signum``.
+
+    ``ray.init`` replaces the SIGTERM handler with its own (``sys.exit``, plus a native one printing a stack
+    trace): a SIGTERM then ended the driver without stopping the jobs or writing their rows. And Ray turns an
+    exception raised by a handler inside ``ray.wait`` into a plain ``KeyboardInterrupt``, which loses which
+    signal it was (130 instead of 143). Default handlers (``SIG_DFL``, ``SIG_IGN``) are left to Ray.
+    """
+
+    def __init__(self, handlers: dict):
+        import threading
+
+        self.signum: int | None = None
+        self._installed: dict = {}
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for s, h in handlers.items():
+            if callable(h):
+                self._installed[s] = signal.getsignal(s)
+                signal.signal(s, self._wrap(h))
+
+    def _wrap(self, handler):
+        def noted(signum, frame):
+            if self.signum is None:
+                self.signum = signum
+            return handler(signum, frame)
+
+        return noted
+
+    def close(self) -> None:
+        """Put back the handlers found when the watch started."""
+        for s, h in self._installed.items():
+            signal.signal(s, h)
+        self._installed.clear()
 
 
 def _collect(ray, ref, job: Job, out_root: Path, timed_out: bool, timeout: float | None, grace_s: float) -> dict:
