@@ -16,7 +16,7 @@ SHORTCUTS = {
     "flow_model": "flow.model", "dis_preset": "flow.dis_preset", "depth_model": "depth.model",
     "scale_from": "scale.source",
     "n_samples": "sampling.n_samples", "seed": "sampling.seed", "min_parallax_px": "keyframes.min_parallax_px",
-    "threads": "runtime.threads", "gt": "output.gt", "rerun_path": "output.rerun", "rerun_spawn": "output.rerun_spawn",
+    "window": "backend.window", "threads": "runtime.threads", "gt": "output.gt", "rerun_path": "output.rerun", "rerun_spawn": "output.rerun_spawn",
 }
 
 

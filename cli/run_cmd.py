@@ -147,8 +147,11 @@ def _remove_if_empty(folder: Path | None, parent_existed: bool = True) -> None:
 @click.option("--dis-preset", type=click.Choice(["fast", "medium", "fine"]), default=None,
               help="OpenCV DIS flow setting, weight-free path [flow.dis_preset; medium].")
 @click.option("--min-parallax", "min_parallax_px", type=click.FloatRange(0.0, 100.0), default=None,
-              help="Median parallax (px, after removing rotation) below which PnP/rotation-only is used "
-                   "[keyframes.min_parallax_px; 3].")
+              help="With --set keyframes.policy=parallax (the earlier rule): median parallax (px, after "
+                   "removing rotation) below which PnP/rotation-only is used [keyframes.min_parallax_px; 3].")
+@click.option("--window", type=click.IntRange(0, 100), default=None,
+              help="Keyframes in the bundle-adjustment window; 0 = no back-end, the paper's pure two-view "
+                   "pipeline [backend.window; 6].")
 @click.option("--samples", "n_samples", type=click.IntRange(100, 100000), default=None,
               help="Matches drawn per frame pair [sampling.n_samples; 6000].")
 @click.option("--seed", type=click.IntRange(min=0), default=None,

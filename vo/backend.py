@@ -22,6 +22,7 @@ from typing import Mapping, Protocol
 
 import numpy as np
 
+from trianflow_vo.config import BackendConfig
 from trianflow_vo.frame import FrameResult
 from trianflow_vo.keyframe import Keyframe
 
@@ -34,13 +35,23 @@ class PoseRevision:
         T_world_cam: keyframe source index -> ``(4, 4)`` revised pose.
         reason: one short sentence (e.g. "window bundle adjustment, 5 keyframes").
         ms: time the back-end spent on it.
+        depth_scale: keyframe source index -> factor (> 0) for the depth that keyframe
+            carries, so that the frames solved from it next are scaled like the revised
+            poses (the odometry applies it to its current keyframe's tracks).
     """
 
     T_world_cam: Mapping[int, np.ndarray]
     reason: str = ""
     ms: float = 0.0
+    depth_scale: Mapping[int, float] = field(default_factory=dict)
 
     def __post_init__(self):
+        scales = {}
+        for k, s in dict(self.depth_scale).items():
+            if not (np.isfinite(s) and s > 0):
+                raise ValueError(f"depth scale of keyframe {k} must be finite and > 0, got {s}")
+            scales[int(k)] = float(s)
+        object.__setattr__(self, "depth_scale", MappingProxyType(scales))
         poses = {}
         for k, T in dict(self.T_world_cam).items():
             T = np.array(T, dtype=np.float64)
@@ -83,11 +94,21 @@ class NoBackend:
         return {"name": self.name}
 
 
-def make_backend(kind: str) -> Backend:
-    """The back-end named by ``backend.kind``."""
-    if kind == "none":
+def make_backend(config: BackendConfig, K: np.ndarray | None = None, size_hw: tuple[int, int] | None = None,
+                 warn=None) -> Backend:
+    """The back-end the ``backend`` section names: :class:`NoBackend` for ``kind: none`` or
+    ``window: 0``, else the windowed bundle adjustment
+    (:class:`~trianflow_vo.ba.backend.WindowBackend`, needs the working ``K`` and ``size_hw``;
+    ``warn(kind, message)`` receives its failures)."""
+    if config.kind == "none" or config.window == 0:
         return NoBackend()
-    raise ValueError(f"unknown back-end {kind!r}; choose from: none")
+    if config.kind == "window-ba":
+        if K is None or size_hw is None:
+            raise ValueError("the window-ba back-end needs the working intrinsics K and size")
+        from trianflow_vo.ba.backend import WindowBackend
+
+        return WindowBackend(config, K, size_hw, warn=warn)
+    raise ValueError(f"unknown back-end {config.kind!r}; choose from: none, window-ba")
 
 
 @dataclass(frozen=True)

@@ -229,8 +229,23 @@ class KeyframeConfig(_Section):
     NAME = "keyframes"
     static_flow_px: float = _opt(0.25, "median flow in pixels under which the camera is taken as static",
                                  range=_Range(0.0))
-    min_parallax_px: float = _opt(3.0, "median parallax in pixels (rotation removed) needed for a new keyframe",
-                                  range=_Range(0.0, 100.0))
+    policy: Literal["gric", "parallax"] = _opt(
+        "gric", "when a frame pair is solved by two-view geometry (and the frame becomes a keyframe): gric = "
+                "general motion must beat rotation-only by GRIC and fix the translation direction to "
+                "max_direction_deg; parallax = median parallax of at least min_parallax_px")
+    min_parallax_px: float = _opt(3.0, "policy parallax: median parallax in pixels (rotation removed) needed for a "
+                                       "new keyframe", range=_Range(0.0, 100.0))
+    max_direction_deg: float = _opt(0.5, "policy gric: largest standard deviation of the translation direction "
+                                         "(degrees) for a two-view step; above it PnP on the keyframe's depth",
+                                    range=_Range(0.0, lo_open=True))
+    max_flow_fraction: float = _opt(0.05, "policy gric: a PnP / rotation-only frame whose mean flow against the "
+                                          "held keyframe exceeds this fraction of the image width becomes the "
+                                          "keyframe (its depth moved by the solved pose)",
+                                    range=_Range(0.0, lo_open=True))
+    noise_floor_px: float = _opt(0.1, "policy gric: smallest flow noise assumed (pixels) when the matches' "
+                                      "residuals say less", range=_Range(0.0, lo_open=True))
+    independent_matches: int = _opt(500, "policy gric: matches counted as independent when propagating the noise "
+                                         "to the direction (dense flow errors are correlated)", range=_Range(8))
 
 
 @dataclass(frozen=True)
@@ -239,7 +254,47 @@ class BackendConfig(_Section):
 
     NAME = "backend"
     # add a back-end by adding its name to this Literal
-    kind: Literal["none"] = _opt("none", "back-end run on each new keyframe; none = front-end poses only")
+    kind: Literal["window-ba", "none"] = _opt(
+        "window-ba", "back-end run on each new keyframe: window-ba = sliding-window bundle adjustment (GTSAM); "
+                     "none = front-end poses only")
+    window: int = _opt(6, "keyframes in the bundle-adjustment window; 0 = no back-end (the paper's pure "
+                          "two-view pipeline)", check=lambda v: None if v == 0 or 3 <= v <= 100 else
+                       f"{_show(v)} is out of range; must be 0 (off) or in [3, 100]", rule="0 or [3, 100]")
+    fixed: int = _opt(2, "oldest keyframes of the window held fixed (they hold the gauge; two also the scale)",
+                      range=_Range(1, 99))
+    prior_trans: float = _opt(0.0, "soft prior on the window's other keyframes (all but the newest) at their "
+                                   "current pose: translation sigma as a fraction of the keyframe step; 0 = none",
+                              range=_Range(0.0))
+    prior_rot_deg: float = _opt(0.1, "rotation sigma of those priors, degrees", range=_Range(0.0, lo_open=True))
+    huber_px: float = _opt(1.0, "Huber threshold of the reprojection errors, pixels", range=_Range(0.0, lo_open=True))
+    max_iterations: int = _opt(5, "Levenberg-Marquardt iterations per window at most", range=_Range(1, 1000))
+    every: int = _opt(1, "adjust the window on every n-th keyframe (tracks follow every keyframe)",
+                      range=_Range(1, 100))
+    max_tracks: int = _opt(250, "most tracks alive at once", range=_Range(10, 100000))
+    cell_px: int = _opt(32, "grid cell (pixels) over which new tracks are spread, one per cell",
+                        range=_Range(2, 1024))
+    track_fb_px: float = _opt(1.0, "a track ends where the flow's forward-backward distance reaches this (pixels)",
+                              range=_Range(0.0, lo_open=True))
+    track_epi_px: float = _opt(1.0, "a track ends where its new pixel is this far (Sampson, pixels) from the "
+                                    "step's epipolar geometry", range=_Range(0.0, lo_open=True))
+    outlier_px: float = _opt(3.0, "a track ends when its reprojection error after the adjustment exceeds this "
+                                  "(pixels)", range=_Range(0.0, lo_open=True))
+    min_points: int = _opt(30, "fewest points for an adjustment (and for a depth rescale)", range=_Range(3))
+    step_factors: bool = _opt(True, "add the front-end's relative pose of each keyframe step as a factor")
+    step_rot_deg: float = _opt(0.05, "sigma of a step factor's rotation, degrees", range=_Range(0.0, lo_open=True))
+    step_trans: float = _opt(0.02, "sigma of a step factor's translation, as a fraction of the step length",
+                             range=_Range(0.0, lo_open=True))
+    rescale_depth: bool = _opt(False, "rescale the new keyframe's carried depth to the adjusted points' depths "
+                                      "(measured worse on KITTI and 7-Scenes: off)")
+    max_shift: float = _opt(0.5, "an adjustment moving a keyframe by more than this many keyframe steps is "
+                                 "rejected", range=_Range(0.0, lo_open=True))
+    max_rotation_deg: float = _opt(3.0, "an adjustment rotating a keyframe by more than this (degrees) is rejected",
+                                   range=_Range(0.0, lo_open=True))
+
+    def _check_together(self, source: str) -> None:
+        if self.window and self.fixed >= self.window:
+            raise ConfigError(f"{self.fixed} must be smaller than backend.window ({self.window})", source,
+                              "backend.fixed")
 
 
 @dataclass(frozen=True)

@@ -110,6 +110,7 @@ class FrameView:
         image: ``(h, w, 3)`` uint8 BGR at working resolution.
         depth: ``(h, w)`` float32 depth of the reference keyframe used for scale/PnP (0 = unknown).
         flow: ``(h, w, 2)`` float32 forward flow reference -> this frame (pixels).
+        flow_bw: ``(h, w, 2)`` float32 backward flow this frame -> reference (pixels).
         pts_ref, pts_cur: ``(N, 2)`` matches used for triangulation or PnP (reference, this frame).
         points_world: ``(M, 3)`` triangulated points in world coordinates.
         point_colors: ``(M, 3)`` uint8 RGB colours of those points.
@@ -118,6 +119,7 @@ class FrameView:
     image: np.ndarray | None = None
     depth: np.ndarray | None = None
     flow: np.ndarray | None = None
+    flow_bw: np.ndarray | None = None
     pts_ref: np.ndarray | None = None
     pts_cur: np.ndarray | None = None
     points_world: np.ndarray | None = None

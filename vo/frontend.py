@@ -14,7 +14,7 @@ keyframe (``T_ref_cur = T_cur_ref^-1``).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -25,7 +25,8 @@ from trianflow_vo.depth.fusion import fuse_log_depth
 from trianflow_vo.flow.base import FlowSource
 from trianflow_vo.flow.masks import flow_scores
 from trianflow_vo.frame import Branch
-from trianflow_vo.geometry.epipolar import epipolar_distance_map, inlier_score
+from trianflow_vo.geometry.epipolar import epipolar_distance_map, inlier_score, sampson_distance
+from trianflow_vo.geometry.model_selection import direction_sigma, select_motion_model
 from trianflow_vo.geometry.pnp import solve_pnp
 from trianflow_vo.geometry.relative_pose import estimate_relative_pose
 from trianflow_vo.geometry.rotation import fit_rotation
@@ -202,12 +203,39 @@ class FrontEnd:
         return self.rng.choice(idx, cap, replace=False) if idx.size > cap else idx
 
     # -- branches -----------------------------------------------------------------------
-    def rotation(self, m: Matches, tm: StageTimer) -> tuple[np.ndarray, float]:
-        """``(R_rot (3, 3), median parallax px)``: the rotation-only fit and what it leaves."""
+    def rotation(self, m: Matches, tm: StageTimer, residuals: bool = False):
+        """``(R_rot (3, 3), median parallax px)``: the rotation-only fit and what it leaves;
+        with ``residuals`` also the ``(N,)`` parallax of every match (pixels)."""
         t0 = time.perf_counter()
         R_rot, par = fit_rotation(m.pts_ref, m.pts_cur, self.K)
         tm.add("rotation", t0)
-        return R_rot, float(np.median(par))
+        return (R_rot, float(np.median(par)), par) if residuals else (R_rot, float(np.median(par)))
+
+    def motion_test(self, m: Matches, rotation_px: np.ndarray, tm: StageTimer):
+        """Which motion the matches show (``keyframes.policy`` gric).
+
+        Estimates the relative pose, then compares general motion with rotation only by
+        GRIC (:func:`~trianflow_vo.geometry.model_selection.select_motion_model`) and,
+        when general motion wins, how well the translation direction is determined
+        (:func:`~trianflow_vo.geometry.model_selection.direction_sigma`, degrees).
+
+        Returns:
+            ``(rel or None, n_inliers, MotionTest or None, direction sigma deg)``.
+        """
+        rel, n_in = self._relative_pose(m, tm)
+        if rel is None:
+            return None, n_in, None, float("inf")
+        t0 = time.perf_counter()
+        d = sampson_distance(rel.F, m.pts_ref, m.pts_cur)
+        test = select_motion_model(d, rotation_px, floor_px=self.cfg.keyframes.noise_floor_px)
+        sig = float("inf")
+        if test.general:
+            inl = rel.inliers
+            sig_rad, ok = direction_sigma(rel.R, rel.t, m.pts_ref[inl], m.pts_cur[inl], self.K, test.sigma_px,
+                                          n_independent=self.cfg.keyframes.independent_matches)
+            sig = float(np.degrees(sig_rad)) if ok else float("inf")
+        tm.add("model", t0)
+        return rel, n_in, test, sig
 
     def pnp_inputs(self, ref: ReferenceDepth, m: Matches, score: np.ndarray):
         """``(X_ref (N, 3), pts_ref, pts_cur)`` for PnP against the keyframe depth.
@@ -236,6 +264,25 @@ class FrontEnd:
                                         self.cfg.sampling.seed)
             tm.add("pnp", t0)
         return sol
+
+    def transfer_keyframe(self, keyframe: Keyframe, sol: Solution, note: str) -> Solution:
+        """Make the frame of a PnP / rotation-only solution the new keyframe: the keyframe's
+        tracks are moved into it by the solved pose (``T_cur_ref``), keeping their ids and
+        weights; those that leave the image or fall behind the camera are dropped."""
+        T_cur_ref = invert_T(sol.T_ref_cam)
+        tr = keyframe.tracks
+        if len(tr):
+            X = unproject(tr.pts, tr.depth, self.K) @ T_cur_ref[:3, :3].T + T_cur_ref[:3, 3]
+            h, w = self.camera.size_hw
+            z = X[:, 2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                uv = (X @ self.K.T)[:, :2] / z[:, None]
+            keep = (z > 0) & np.isfinite(uv).all(axis=1)
+            keep &= (uv[:, 0] > -0.5) & (uv[:, 0] < w - 0.5) & (uv[:, 1] > -0.5) & (uv[:, 1] < h - 0.5)
+            tracks = Tracks(tr.ids[keep], uv[keep], z[keep], tr.weight[keep])
+        else:
+            tracks = Tracks.empty()
+        return replace(sol, reason=sol.reason + note, tracks=tracks, step_norm=None)
 
     def _relative_pose(self, m: Matches, tm: StageTimer):
         """``(RelativePose, n_inliers)`` of the matches, or ``(None, n)`` when degenerate."""
@@ -278,7 +325,7 @@ class FrontEnd:
                         tracks=tracks, step_norm=float(np.linalg.norm(t_s)))
 
     def two_view(self, keyframe: Keyframe, ref: ReferenceDepth | None, m: Matches, R_rot: np.ndarray,
-                 last_step_norm: float | None, tm: StageTimer) -> Solution:
+                 last_step_norm: float | None, tm: StageTimer, estimated=None) -> Solution:
         """Relative pose from the matches, mid-point triangulation, scale from the keyframe depth.
 
         Falls back to :meth:`small_motion` when the geometry is degenerate. On
@@ -286,7 +333,7 @@ class FrontEnd:
         :class:`~trianflow_vo.keyframe.Tracks` (the triangulated points, with the
         ids of the tracks they continue)."""
         g, K = self.cfg.geometry, self.K
-        rel, n_in = self._relative_pose(m, tm)
+        rel, n_in = estimated if estimated is not None else self._relative_pose(m, tm)
         if rel is None:
             return self.small_motion(keyframe, ref, m, R_rot, f"two-view geometry degenerate ({n_in} inliers)", tm)
         stats = {"inliers": n_in, "inlier_ratio": float(rel.inliers.mean())}
@@ -310,6 +357,12 @@ class FrontEnd:
             if okp and tn > 0:
                 ratio = tn / scale
                 stats["pnp_ratio"] = ratio
+                if abs(np.log(ratio)) > np.log(self.cfg.scale.pnp_check_ratio) and self.cfg.keyframes.policy == "gric":
+                    # the two-view step is not to be trusted: PnP on the held keyframe, no new keyframe
+                    T_ref_cam = invert_T(make_T(Rp, tp))
+                    return Solution(Branch.PNP, f"two-view scale disagreed with PnP by {ratio:.2f}x: PnP pose, "
+                                    "keyframe kept", keyframe.T_world_cam @ T_ref_cam, T_ref_cam,
+                                    {"inliers": n_in, "pnp_ratio": ratio})
                 if abs(np.log(ratio)) > np.log(self.cfg.scale.pnp_check_ratio):
                     R, t_unit, scale = Rp, tp / tn, tn
                     X, valid, angle = triangulate_midpoint(q1, q2, K, R, t_unit, min_angle=g.min_angle_rad)

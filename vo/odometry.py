@@ -95,17 +95,37 @@ class Odometry:
         Static camera (median flow under ``keyframes.static_flow_px``): IDENTITY. Median
         parallax under ``keyframes.min_parallax_px``: PnP/rotation, keyframe kept. Else
         the two-view step, after which the frame is the new keyframe."""
+        kc = self.cfg.keyframes
         median_flow = float(np.median(m.flow_mag))
-        if median_flow < self.cfg.keyframes.static_flow_px:
+        if median_flow < kc.static_flow_px:
             return identity_solution(kf.T_world_cam, f"median flow {median_flow:.2f} px: camera static"), None
-        R_rot, parallax = self.front.rotation(m, tm)
+        R_rot, parallax, par = self.front.rotation(m, tm, residuals=True)
         stats["parallax_px"] = parallax
         ref = self._reference(kf, tm)
-        min_par = self.cfg.keyframes.min_parallax_px
-        if parallax < min_par:
-            why = f"parallax {parallax:.2f} px < {min_par} px"
-            return self.front.small_motion(kf, ref, m, R_rot, why, tm), ref
-        return self.front.two_view(kf, ref, m, R_rot, self.last_step_norm, tm), ref
+        if kc.policy == "parallax":
+            if parallax < kc.min_parallax_px:
+                why = f"parallax {parallax:.2f} px < {kc.min_parallax_px} px"
+                return self.front.small_motion(kf, ref, m, R_rot, why, tm), ref
+            return self.front.two_view(kf, ref, m, R_rot, self.last_step_norm, tm), ref
+        rel, n_in, test, dir_sigma = self.front.motion_test(m, par, tm)
+        why = ""
+        if rel is None:
+            why = f"two-view geometry degenerate ({n_in} inliers)"
+        elif not test.general:
+            why = (f"rotation-only motion (GRIC {test.gric_rotation:.2f} <= {test.gric_general:.2f} per match, "
+                   f"noise {test.sigma_px:.2f} px, parallax {parallax:.2f} px)")
+        elif dir_sigma > kc.max_direction_deg:
+            why = f"translation direction uncertain ({dir_sigma:.2f} deg > {kc.max_direction_deg} deg)"
+        if why:
+            sol = self.front.small_motion(kf, ref, m, R_rot, why, tm)
+        else:
+            sol = self.front.two_view(kf, ref, m, R_rot, self.last_step_norm, tm, estimated=(rel, n_in))
+        mean_flow = float(m.flow_mag.mean())
+        if (sol.tracks is None and sol.branch in (Branch.PNP, Branch.ROTATION)
+                and mean_flow > kc.max_flow_fraction * self.camera.size_hw[1]):
+            # the flow against the held keyframe grows with every frame: hand its depth on to this frame
+            sol = self.front.transfer_keyframe(kf, sol, f"; keyframe handed on at mean flow {mean_flow:.1f} px")
+        return sol, ref
 
     def _solve_pairwise(self, kf: Keyframe, m: Matches, cur: Keyframe, stats: dict, tm: StageTimer):
         """The authors' policy (``scale.source`` depth): every pair scaled by the network depth of
@@ -139,20 +159,29 @@ class Odometry:
         kf = self.keyframe
         is_keyframe = sol.tracks is not None
         if is_keyframe:
-            self.last_step_norm = sol.step_norm
+            if sol.step_norm is not None:  # a handed-on keyframe (PnP / rotation) keeps the last step length
+                self.last_step_norm = sol.step_norm
             self.keyframe = Keyframe(frame_index, image, prepared, sol.T_world_cam, sol.tracks)
         self.T_world_last = sol.T_world_cam
         line, self.line = self.line, self.line + 1
-        view = FrameView.of(image=image, depth=None if ref is None else ref.depth, flow=m.fw, pts_ref=sol.pts_ref,
+        view = FrameView.of(image=image, depth=None if ref is None else ref.depth, flow=m.fw, flow_bw=m.bw,
+                            pts_ref=sol.pts_ref,
                             pts_cur=sol.pts_cur, points_world=sol.points_world, point_colors=sol.point_colors)
         return result_from_solution(line, frame_index, timestamp, kf.index, sol, stats, self.camera.K, tm, view)
 
     def apply_revision(self, revision: PoseRevision, T_world_last: np.ndarray) -> None:
-        """A back-end moved keyframes: chain on from the revised pose of the current keyframe.
+        """A back-end moved keyframes: chain on from the revised pose of the current keyframe,
+        with its carried depth rescaled by ``revision.depth_scale`` when the back-end gives one.
 
         ``T_world_last`` is the last frame's pose after the revision (from the
         pipeline's :class:`~trianflow_vo.backend.Trajectory`)."""
         kf = self.keyframe
         if kf is not None and kf.index in revision.T_world_cam:
-            self.keyframe = kf.with_pose(revision.T_world_cam[kf.index])
+            kf = kf.with_pose(revision.T_world_cam[kf.index])
+        s = None if kf is None else revision.depth_scale.get(kf.index)
+        if s is not None and len(kf.tracks):
+            kf = kf.with_tracks(kf.tracks.scaled(s))
+            if self.last_step_norm is not None:
+                self.last_step_norm *= s
+        self.keyframe = kf
         self.T_world_last = np.array(T_world_last, dtype=np.float64)

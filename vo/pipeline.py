@@ -139,13 +139,13 @@ def _run(seq: Path, out_dir: Path, config: Config, observers: list[Observer], od
     if resolve_scale_source(config) == "triangulation" and config.depth.model is not None:
         log.warning("depth.model is not used with scale.source=triangulation (scale from carried depth)")
     odo = (odometry_factory or make_odometry)(camera, config)
-    backend = backend or make_backend(config.backend.kind)
+    runlog = RunLog()
+    backend = backend or make_backend(config.backend, camera.K, camera.size_hw, warn=runlog.warn)
     gt = None
     if config.output.gt is not None:
         from trianflow_vo.eval import load_ground_truth
 
         gt = load_ground_truth(config.output.gt)
-    runlog = RunLog()
     info = {
         "command": "run",
         "sequence": {"path": str(seq), "kind": reader.kind, "frames_selected": len(reader),
@@ -215,6 +215,7 @@ def _run(seq: Path, out_dir: Path, config: Config, observers: list[Observer], od
     finally:
         with signals.deferred():  # a second Ctrl-C must not lose the final status
             try:
+                info["backend"] = backend.describe()  # its counts and time, in the final run.json
                 _finish(writer, extra, trajectory, gt, config, out_dir, seq, runlog, info, interrupted, error,
                         signame)
             finally:

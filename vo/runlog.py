@@ -4,7 +4,7 @@ Messages go to the standard :mod:`logging` logger ``trianflow_vo`` (the CLI sets
 its level with ``-v``/``-q``). Routine behaviour (a PnP step on small parallax, a
 held keyframe, a static camera) is logged at INFO. A warning names its kind
 (``skipped-frame``, ``rotation-only``, ``failed-frame``, ``scale-fallback``,
-``observer``, ``plot``); per-frame kinds are logged at INFO as they happen and
+``backend-failed``, ``backend-rejected``, ``observer``, ``plot``); per-frame kinds are logged at INFO as they happen and
 summarised once per kind at the end (WARNING), while a skipped frame is a
 WARNING at once, naming its file. Every warning is kept, with its count, for
 ``run.json``.
@@ -19,7 +19,9 @@ log = logging.getLogger("trianflow_vo")
 # kinds that can happen on many frames: one summary line at the end instead of one line each
 PER_FRAME_KINDS = {"rotation-only": "frames solved by rotation only",
                    "failed-frame": "frames failed (pose kept from the previous frame)",
-                   "scale-fallback": "frames with a fallback scale (constant speed)"}
+                   "scale-fallback": "frames with a fallback scale (constant speed)",
+                   "backend-failed": "keyframes whose bundle adjustment failed (front-end poses kept)",
+                   "backend-rejected": "keyframes whose bundle adjustment was rejected as implausible"}
 
 
 class RunLog:

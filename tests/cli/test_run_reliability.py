@@ -207,23 +207,26 @@ def test_rerun_problems_leave_no_default_folder(sample_seq, tmp_path, monkeypatc
 
 
 def test_file_size_limit_keeps_whole_lines_and_names_the_file(sample_seq, tmp_path):
-    """A real short write: RLIMIT_FSIZE lets poses.txt grow to 4600 bytes (23 lines and a part)."""
+    """A real short write: RLIMIT_FSIZE lets poses.txt grow to 9000 bytes (a whole number of lines and a part);
+    the other files (config.yaml with its comments, run.json) stay under it."""
     resource = pytest.importorskip("resource")
     out = tmp_path / "out"
-    limit = 4600
+    limit = 9000
 
     def limit_files():
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # EFBIG instead of being killed
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
 
     p = subprocess.run([sys.executable, "-B", "-m", "trianflow_vo.cli", "run", str(sample_seq), *SMALL,
-                        "--end", "30", "--no-plot", "-q", "--out", str(out)],
+                        "--end", "48", "--no-plot", "-q", "--out", str(out)],
                        cwd=tmp_path, capture_output=True, text=True, timeout=120, preexec_fn=limit_files)
     assert p.returncode == 1, p.stderr
     err = [ln for ln in p.stderr.splitlines() if ln.strip()]
     assert err == [f"Error: {out / 'poses.txt'}: File too large"], p.stderr
     poses = lines(out / "poses.txt")
-    assert len(poses) == limit // len(poses[0].encode() + b"\n") and all(len(x.split()) == 12 for x in poses)
+    raw = (out / "poses.txt").read_bytes()
+    assert len(raw) <= limit and raw.endswith(b"\n") and 30 < len(poses) < 48  # whole lines up to the limit
+    assert all(len(x.split()) == 12 for x in poses)
     assert len(lines(out / "frames.txt")) == len(poses) == len(lines(out / "frames.tsv")) - 1
     doc = status(out)
     assert doc["status"] == "failed" and doc["error"] == f"OSError: {out / 'poses.txt'}: File too large"

@@ -91,17 +91,18 @@ def read_tsv(run_dir: Path) -> list[dict]:
 
 
 def stride3(**keyframes) -> Config:
-    data = {"input": {"stride": 3}, "output": {"plot": False}}
+    # the seam is tested with the pipeline's own back-end off (backend.window 0): the fake one is passed in
+    data = {"input": {"stride": 3}, "output": {"plot": False}, "backend": {"window": 0}}
     if keyframes:
         data["keyframes"] = keyframes
     return merge_dict(Config(), data, "test")
 
 
-# Default: every frame of the sample at stride 3 is a two-view keyframe. With a 10 px
-# parallax threshold some frames are PnP / rotation-only against a keyframe instead
+# Default: every frame of the sample at stride 3 is a two-view keyframe. With the parallax
+# rule at 10 px some frames are PnP / rotation-only against a keyframe instead
 # (measured: keyframes 0, 6, 12, ...; frame 3 solved from 0, frame 9 from 6), so the
 # re-anchoring of frames that are not keyframes is exercised too.
-CONFIGS = {"default": stride3(), "with-pnp-frames": stride3(min_parallax_px=10.0)}
+CONFIGS = {"default": stride3(), "with-pnp-frames": stride3(policy="parallax", min_parallax_px=10.0)}
 
 
 @pytest.fixture(scope="module", params=sorted(CONFIGS))
@@ -225,7 +226,7 @@ def test_no_backend_is_byte_identical_to_no_backend_argument(revised_run, tmp_pa
     from conftest import SAMPLE
 
     config = CONFIGS[revised_run["name"]]
-    run(SAMPLE, tmp_path / "default", config)  # backend.kind "none", chosen by the pipeline
+    run(SAMPLE, tmp_path / "default", config)  # backend.window 0: NoBackend, chosen by the pipeline
     plain = revised_run["dir"] / "plain"
     for name in ("poses.txt", "trajectory.tum", "frames.txt"):
         assert (tmp_path / "default" / name).read_bytes() == (plain / name).read_bytes(), name

@@ -1,0 +1,110 @@
+"""The window bundle-adjustment back-end inside the pipeline (rendered sequences, known poses)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from synthetic_sequences import make_sequence
+
+pytest.importorskip("gtsam", reason="the window back-end needs gtsam (a dependency of the project)")
+
+from trianflow_vo.backend import NoBackend, PoseRevision, make_backend  # noqa: E402
+from trianflow_vo.ba.backend import WindowBackend  # noqa: E402
+from trianflow_vo.config import BackendConfig, Config, ConfigError, apply_overrides  # noqa: E402
+from trianflow_vo.keyframe import Tracks  # noqa: E402
+from trianflow_vo.pipeline import run  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory):
+    seq = tmp_path_factory.mktemp("seq") / "urban"
+    make_sequence("urban_turn", seq, n_frames=14, seed=3, size=(128, 384))
+    return seq
+
+
+def _run(seq, out, *overrides):
+    run(seq, out, apply_overrides(Config(), ["output.plot=false", *overrides]))
+    return json.loads((out / "run.json").read_text()), np.loadtxt(out / "poses.txt").reshape(-1, 3, 4)
+
+
+def test_window_backend_revises_keyframes_and_reports_in_run_json(drive, tmp_path):
+    doc, poses = _run(drive, tmp_path / "ba", "backend.window=5")
+    be = doc["backend"]
+    assert be["name"] == "window-ba" and be["window"] == 5
+    assert be["solves"] >= 5 and be["revisions"] >= 5 and be["failures"] == 0
+    assert be["ms_total"] > 0 and be["points_median"] >= 30
+    assert doc["revisions"]["count"] == be["revisions"] and doc["revisions"]["frames_revised"] > 0
+    assert len(poses) == doc["frames_processed"] == 14
+    assert np.isfinite(poses).all()
+
+
+def test_window_0_is_the_pure_two_view_pipeline(drive, tmp_path):
+    doc0, p0 = _run(drive, tmp_path / "w0", "backend.window=0")
+    docn, pn = _run(drive, tmp_path / "none", "backend.kind=none")
+    assert doc0["backend"] == {"name": "none"} and doc0["revisions"]["count"] == 0
+    np.testing.assert_array_equal(p0, pn)
+
+
+def test_a_failing_adjustment_keeps_the_front_end_poses_and_the_run_goes_on(drive, tmp_path, monkeypatch):
+    import trianflow_vo.ba.backend as ba_backend
+
+    monkeypatch.setattr(ba_backend, "solve_window", lambda *a, **k: (None, False))
+    doc, poses = _run(drive, tmp_path / "fail", "backend.window=5")
+    _, p0 = _run(drive, tmp_path / "w0", "backend.window=0")
+    assert doc["status"] == "completed"
+    assert doc["backend"]["failures"] == doc["backend"]["solves"] > 0
+    assert doc["warnings"]["backend-failed"]["count"] == doc["backend"]["failures"]
+    np.testing.assert_array_equal(poses, p0)  # no revision: the front-end's poses
+
+
+def test_an_implausible_adjustment_is_rejected(drive, tmp_path, monkeypatch):
+    import trianflow_vo.ba.backend as ba_backend
+
+    real = ba_backend.solve_window
+
+    def wild(*a, **k):
+        sol, ok = real(*a, **k)
+        if ok:
+            for kf in sol.poses:
+                sol.poses[kf] = sol.poses[kf].copy()
+                sol.poses[kf][:3, 3] += 100.0  # far away
+        return sol, ok
+
+    monkeypatch.setattr(ba_backend, "solve_window", wild)
+    doc, poses = _run(drive, tmp_path / "wild", "backend.window=5")
+    assert doc["backend"]["rejected"] == doc["backend"]["solves"] > 0
+    assert np.abs(poses[:, :, 3]).max() < 50
+
+
+def test_make_backend_and_its_configuration():
+    assert isinstance(make_backend(BackendConfig(window=0)), NoBackend)
+    assert isinstance(make_backend(BackendConfig(kind="none")), NoBackend)
+    K = np.array([[100.0, 0, 50], [0, 100.0, 40], [0, 0, 1]])
+    assert isinstance(make_backend(BackendConfig(), K, (80, 100)), WindowBackend)
+    with pytest.raises(ValueError):
+        make_backend(BackendConfig())  # needs K and the size
+    for bad in ({"window": 2}, {"window": 5, "fixed": 5}, {"huber_px": 0}):
+        with pytest.raises(ConfigError):
+            BackendConfig(**bad)
+
+
+def test_revision_depth_scale_rescales_the_keyframes_carried_depth():
+    from trianflow_vo.camera import PinholeCamera
+    from trianflow_vo.depth.triangulated import TriangulatedDepth
+    from trianflow_vo.flow.dis import DisFlow
+    from trianflow_vo.keyframe import Keyframe
+    from trianflow_vo.odometry import Odometry
+
+    cam = PinholeCamera(np.array([[100.0, 0, 50], [0, 100.0, 40], [0, 0, 1]]), (80, 100))
+    odo = Odometry(cam, DisFlow(), TriangulatedDepth((80, 100)))
+    tracks = Tracks(np.arange(3), np.array([[10.0, 10], [20, 20], [30, 30]]), np.array([1.0, 2.0, 4.0]), np.ones(3))
+    odo.keyframe = Keyframe(7, np.zeros((80, 100, 3), np.uint8), None, np.eye(4), tracks)
+    T = np.eye(4)
+    T[0, 3] = 0.5
+    odo.apply_revision(PoseRevision({7: T}, depth_scale={7: 0.5}), T)
+    np.testing.assert_allclose(odo.keyframe.tracks.depth, [0.5, 1.0, 2.0])
+    np.testing.assert_allclose(odo.keyframe.T_world_cam, T)
+    with pytest.raises(ValueError):
+        PoseRevision({7: T}, depth_scale={7: -1.0})

@@ -1,0 +1,205 @@
+"""Tracks for the bundle adjustment: keyframe pixels followed through the flow.
+
+A track is one scene point seen in several keyframes. It is born at a match of a
+two-view step (a pixel of the older keyframe and its flow end point in the newer
+one, both observations, with the triangulated point as the landmark's first
+estimate). At each new keyframe every live track is moved by the forward flow
+between the two keyframes, sampled bilinearly at its sub-pixel position, and
+ends when
+
+* it leaves the image (``margin_px`` from the border),
+* the flow there is not forward-backward consistent
+  (``|fw(p) + bw(p + fw(p))| >= fb_px``), or
+* the new pixel is an epipolar outlier of the step (Sampson distance ``>= epi_px``).
+
+Empty cells of a grid over the newer keyframe (``cell_px``) are then filled with
+new tracks, up to ``max_tracks`` alive. A track also ends when the bundle
+adjustment finds it an outlier (:meth:`TrackTable.end`).
+
+Pixels are ``(u, v)``; flows are ``flow[y, x] = (dx, dy)`` at working resolution.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from trianflow_vo.geometry.epipolar import sampson_distance
+
+
+def sample_bilinear(field: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear samples of ``field`` at sub-pixel points.
+
+    Args:
+        field: ``(h, w, C)`` or ``(h, w)`` array (converted to float32).
+        pts: ``(N, 2)`` pixels ``(u, v)``.
+
+    Returns:
+        ``(values (N, C) float64, inside (N,) bool)``; ``inside`` is False for points
+        outside ``[0, w-1] x [0, h-1]`` (their values are 0).
+    """
+    pts = np.asarray(pts, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        raise ValueError(f"pts must be (N, 2), got {pts.shape}")
+    f = np.asarray(field, dtype=np.float32)
+    if f.ndim == 2:
+        f = f[..., None]
+    h, w, c = f.shape
+    n = pts.shape[0]
+    inside = (pts[:, 0] >= 0) & (pts[:, 0] <= w - 1) & (pts[:, 1] >= 0) & (pts[:, 1] <= h - 1)
+    if n == 0:
+        return np.zeros((0, c)), inside
+    map_x = np.ascontiguousarray(pts[:, 0].reshape(1, n), dtype=np.float32)
+    map_y = np.ascontiguousarray(pts[:, 1].reshape(1, n), dtype=np.float32)
+    out = np.zeros((n, c))
+    for k in range(0, c, 4):  # cv2.remap takes up to 4 channels at once
+        chunk = np.ascontiguousarray(f[..., k:k + 4])
+        s = cv2.remap(chunk, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        out[:, k:k + 4] = np.asarray(s, dtype=np.float64).reshape(n, -1)
+    out[~inside] = 0.0
+    return out, inside
+
+
+@dataclass(frozen=True)
+class TrackUpdate:
+    """What one keyframe step did to the tracks (counts)."""
+
+    continued: int
+    left_image: int
+    inconsistent: int
+    epipolar_outliers: int
+    born: int
+
+
+class TrackTable:
+    """Live tracks, their observations in recent keyframes, and landmark estimates.
+
+    Args:
+        size_hw: working image size ``(h, w)``.
+        cell_px: side of the grid cells new tracks are spread over (pixels).
+        max_tracks: most tracks alive at once.
+        fb_px: forward-backward distance (pixels) from which a track ends.
+        epi_px: Sampson distance (pixels) to the step's epipolar geometry from which a track ends.
+        margin_px: a track closer than this to the border ends.
+    """
+
+    def __init__(self, size_hw: tuple[int, int], cell_px: int = 24, max_tracks: int = 400, fb_px: float = 1.0,
+                 epi_px: float = 1.0, margin_px: float = 2.0):
+        if cell_px < 1 or max_tracks < 1:
+            raise ValueError(f"cell_px and max_tracks must be >= 1, got {cell_px}, {max_tracks}")
+        self.size_hw = (int(size_hw[0]), int(size_hw[1]))
+        self.cell_px = int(cell_px)
+        self.max_tracks = int(max_tracks)
+        self.fb_px = float(fb_px)
+        self.epi_px = float(epi_px)
+        self.margin_px = float(margin_px)
+        self.ids = np.zeros(0, dtype=np.int64)  # live tracks, seen in the newest keyframe
+        self.pts = np.zeros((0, 2))  # their pixel there
+        self.newest: int | None = None  # the newest keyframe's index
+        self.obs: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # keyframe -> (ids (M,), pixels (M, 2))
+        self.landmarks: dict[int, np.ndarray] = {}  # track id -> (3,) world point
+        self._next_id = 0
+
+    def __len__(self) -> int:
+        return int(self.ids.size)
+
+    # -- one keyframe step ----------------------------------------------------------------------------
+    def advance(self, kf_old: int, kf_new: int, fw: np.ndarray, bw: np.ndarray, F: np.ndarray,
+                cand_old: np.ndarray, cand_new: np.ndarray, cand_world: np.ndarray) -> TrackUpdate:
+        """Follow the live tracks from keyframe ``kf_old`` into ``kf_new`` and add new ones.
+
+        Args:
+            kf_old, kf_new: source indices of the two keyframes (``kf_old`` must be the
+                newest keyframe so far, or the first call).
+            fw, bw: ``(h, w, 2)`` flow ``kf_old -> kf_new`` and back.
+            F: ``(3, 3)`` fundamental matrix of the step (``x_new^T F x_old = 0``), or None for a
+                step without translation (no epipolar test).
+            cand_old, cand_new: ``(M, 2)`` matches of the step that new tracks may start from.
+            cand_world: ``(M, 3)`` their triangulated world points (first landmark estimates).
+        """
+        if self.newest is not None and kf_old != self.newest:
+            raise ValueError(f"tracks are in keyframe {self.newest}, not {kf_old}")
+        h, w = self.size_hw
+        if fw.shape != (h, w, 2) or bw.shape != (h, w, 2):
+            raise ValueError(f"fw and bw must be ({h}, {w}, 2), got {fw.shape} and {bw.shape}")
+        n = self.ids.size
+        left = inconsistent = epi_out = 0
+        if n:
+            f, _ = sample_bilinear(fw, self.pts)
+            moved = self.pts + f
+            m = self.margin_px
+            inside = (moved[:, 0] >= m) & (moved[:, 0] <= w - 1 - m) & (moved[:, 1] >= m) & (moved[:, 1] <= h - 1 - m)
+            b, _ = sample_bilinear(bw, np.where(inside[:, None], moved, 0.0))
+            fb_ok = np.linalg.norm(f + b, axis=1) < self.fb_px
+            epi_ok = (np.ones(n, dtype=bool) if F is None
+                      else sampson_distance(F, self.pts, moved) < self.epi_px)
+            keep = inside & fb_ok & epi_ok
+            left = int((~inside).sum())
+            inconsistent = int((inside & ~fb_ok).sum())
+            epi_out = int((inside & fb_ok & ~epi_ok).sum())
+            self.ids, self.pts = self.ids[keep], moved[keep]
+        self.obs[kf_new] = (self.ids.copy(), self.pts.copy())
+        born = self._spawn(kf_old, kf_new, cand_old, cand_new, cand_world)
+        self.newest = kf_new
+        return TrackUpdate(int(self.ids.size) - born, left, inconsistent, epi_out, born)
+
+    def _spawn(self, kf_old: int, kf_new: int, cand_old: np.ndarray, cand_new: np.ndarray,
+               cand_world: np.ndarray) -> int:
+        """New tracks in the empty grid cells of ``kf_new``; returns how many."""
+        room = self.max_tracks - self.ids.size
+        cand_new = np.asarray(cand_new, dtype=np.float64).reshape(-1, 2)
+        if room <= 0 or cand_new.shape[0] == 0:
+            return 0
+        h, w = self.size_hw
+        m, c = self.margin_px, self.cell_px
+        ok = ((cand_new[:, 0] >= m) & (cand_new[:, 0] <= w - 1 - m) & (cand_new[:, 1] >= m)
+              & (cand_new[:, 1] <= h - 1 - m) & np.isfinite(cand_world).all(axis=1))
+        idx = np.flatnonzero(ok)
+        n_cols = (w + c - 1) // c
+        cell = (cand_new[idx, 1] // c).astype(np.int64) * n_cols + (cand_new[idx, 0] // c).astype(np.int64)
+        taken = set(((self.pts[:, 1] // c).astype(np.int64) * n_cols + (self.pts[:, 0] // c).astype(np.int64)).tolist())
+        free = np.array([cl not in taken for cl in cell.tolist()], dtype=bool)
+        idx, cell = idx[free], cell[free]
+        _, first = np.unique(cell, return_index=True)  # one candidate per cell: the first drawn
+        pick = idx[np.sort(first)][:room]
+        if pick.size == 0:
+            return 0
+        new_ids = np.arange(self._next_id, self._next_id + pick.size, dtype=np.int64)
+        self._next_id += pick.size
+        for tid, X in zip(new_ids.tolist(), np.asarray(cand_world, dtype=np.float64)[pick]):
+            self.landmarks[tid] = X.copy()
+        old_ids, old_pts = self.obs.get(kf_old, (np.zeros(0, np.int64), np.zeros((0, 2))))
+        self.obs[kf_old] = (np.concatenate([old_ids, new_ids]),
+                            np.concatenate([old_pts, np.asarray(cand_old, dtype=np.float64)[pick]]))
+        self.ids = np.concatenate([self.ids, new_ids])
+        self.pts = np.concatenate([self.pts, cand_new[pick]])
+        self.obs[kf_new] = (self.ids.copy(), self.pts.copy())
+        return int(pick.size)
+
+    # -- what the bundle adjustment says ------------------------------------------------------------
+    def end(self, track_ids: np.ndarray) -> None:
+        """End these tracks everywhere (outliers): observations, landmark and live entry."""
+        gone = np.asarray(track_ids, dtype=np.int64)
+        if gone.size == 0:
+            return
+        live = ~np.isin(self.ids, gone)
+        self.ids, self.pts = self.ids[live], self.pts[live]
+        for kf, (ids, pts) in list(self.obs.items()):
+            keep = ~np.isin(ids, gone)
+            self.obs[kf] = (ids[keep], pts[keep])
+        for t in gone.tolist():
+            self.landmarks.pop(t, None)
+
+    def forget(self, keep_keyframes) -> None:
+        """Drop the observations of keyframes outside ``keep_keyframes`` and the landmarks
+        of tracks no longer seen in any kept keyframe (memory stays bounded)."""
+        keep = set(int(k) for k in keep_keyframes)
+        for kf in [k for k in self.obs if k not in keep]:
+            del self.obs[kf]
+        seen = set()
+        for ids, _ in self.obs.values():
+            seen.update(ids.tolist())
+        for t in [t for t in self.landmarks if t not in seen]:
+            del self.landmarks[t]
