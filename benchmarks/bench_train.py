@@ -6,6 +6,14 @@ frame pair of the KITTI sample (resized; the same pair repeated: this is a cost
 measurement, not training), ``--warmup`` iterations not timed, then ``--iters`` timed.
 
     python benchmarks/bench_train.py --sizes 256x832,128x384 --batches 8,2 --iters 3 --json out.json
+
+With random weights the flow is near zero, the pose of stages depth and joint often fails and
+their depth terms are then zeroed, which skips most of the depth backward pass and makes the
+iteration look cheaper than it is. ``--init CKPT`` starts from a checkpoint's networks (e.g. a
+short flow stage's ``checkpoint.pt``) so that the pose succeeds; every row reports
+``depth_failed`` (items whose pose or triangulation failed, over the timed iterations) so a
+row measured on zeroed terms shows it. ``--depth-failure item`` keeps the other items' depth
+terms when one fails (the kitti preset, as the authors, zeroes the whole batch's).
 """
 
 from __future__ import annotations
@@ -21,7 +29,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 
-def one(stage: str, size: tuple[int, int], batch: int, iters: int, warmup: int, threads: int) -> dict:
+def one(stage: str, size: tuple[int, int], batch: int, iters: int, warmup: int, threads: int,
+        init: str | None = None, depth_failure: str | None = None) -> dict:
     import cv2
     import numpy as np
     import resource
@@ -52,9 +61,22 @@ def one(stage: str, size: tuple[int, int], batch: int, iters: int, warmup: int, 
     img1 = ims[0].expand(batch, -1, -1, -1).contiguous()
     img2 = ims[1].expand(batch, -1, -1, -1).contiguous()
     cfg = load_train_config("kitti", stage)
+    weights = loss_weights(cfg)
+    if depth_failure:
+        import dataclasses
+
+        weights = dataclasses.replace(weights, depth_failure=depth_failure)
     torch.manual_seed(0)
     flow = PWCNet()
     depth = DepthNet() if stage != "flow" else None
+    if init:
+        from trianflow_vo.models.checkpoint import load_checkpoint
+
+        ck = load_checkpoint(init)
+        if ck.flow is not None:
+            flow.load_state_dict(ck.flow.net.state_dict())
+        if ck.depth is not None and depth is not None:
+            depth.load_state_dict(ck.depth.net.state_dict())
     if stage == "depth":
         flow.eval()
         for p in flow.parameters():
@@ -62,19 +84,25 @@ def one(stage: str, size: tuple[int, int], batch: int, iters: int, warmup: int, 
     params = [p for n in (flow, depth) if n is not None for p in n.parameters() if p.requires_grad]
     opt = torch.optim.Adam(params, lr=1e-4)
     times = []
+    failed = zeroed = 0
+    load0 = os.getloadavg()
     for i in range(warmup + iters):
         t0 = time.perf_counter()
-        out = compute_losses(stage, img1, img2, Kt, Ki, loss_weights(cfg), flow_net=flow, depth_net=depth,
+        cv2.setRNGSeed(i)
+        out = compute_losses(stage, img1, img2, Kt, Ki, weights, flow_net=flow, depth_net=depth,
                              generator=torch.Generator().manual_seed(i))
         opt.zero_grad()
         out.total.backward()
         opt.step()
         if i >= warmup:
             times.append(time.perf_counter() - t0)
-    return {"stage": stage, "size": f"{h}x{w}", "batch": batch, "threads": threads,
+            failed += int(out.depth_failed)
+            zeroed += int(out.depth_zeroed and weights.depth_failure == "batch")
+    return {"stage": stage, "size": f"{h}x{w}", "batch": batch, "threads": threads, "init": init,
+            "depth_failure": weights.depth_failure, "batches_zeroed": zeroed,
             "s_per_iter_median": float(np.median(times)), "s_per_iter_all": times,
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-            "depth_failed_last": int(out.depth_failed)}
+            "depth_failed": failed, "load_average_start": load0, "load_average_end": os.getloadavg()}
 
 
 def main() -> None:
@@ -86,19 +114,24 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=1)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--init", default=None, help="checkpoint whose networks to start from (see above)")
+    ap.add_argument("--depth-failure", choices=["batch", "item"], default=None,
+                    help="losses.depth_failure (default: the preset's, batch)")
     ap.add_argument("--one", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.one:
         stage, size, batch = a.one.split(":")
         h, w = (int(v) for v in size.split("x"))
-        print(json.dumps(one(stage, (h, w), int(batch), a.iters, a.warmup, a.threads)))
+        print(json.dumps(one(stage, (h, w), int(batch), a.iters, a.warmup, a.threads, a.init, a.depth_failure)))
         return
     rows = []
     load0 = os.getloadavg()
     for size, batch in zip(a.sizes.split(","), a.batches.split(",")):
         for stage in a.stages.split(","):
             res = subprocess.run([sys.executable, __file__, "--one", f"{stage}:{size}:{batch}", "--iters",
-                                  str(a.iters), "--warmup", str(a.warmup), "--threads", str(a.threads)],
+                                  str(a.iters), "--warmup", str(a.warmup), "--threads", str(a.threads),
+                                  *(["--init", a.init] if a.init else []),
+                                  *(["--depth-failure", a.depth_failure] if a.depth_failure else [])],
                                  capture_output=True, text=True)
             if res.returncode:
                 row = {"stage": stage, "size": size, "batch": int(batch), "error": res.stderr.strip()[-300:]}

@@ -86,6 +86,9 @@ class LossConfig(_Section):
     w_depth_smooth: float = _opt(1e-3, "first-order depth smoothness on mean-normalised disparity",
                                  range=_Range(0.0))
     fb_consistency: bool = _opt(True, "valid mask uses the forward-backward check (NYUv2: visibility only)")
+    depth_failure: Literal["batch", "item"] = _opt(
+        "batch", "when the pose or triangulation of a pair fails: batch = zero the depth terms of the whole batch "
+                 "(the authors), item = only that pair's (our option)")
 
 
 @dataclass(frozen=True)

@@ -60,14 +60,15 @@ def barrier(world: World) -> None:
 
 
 def mean_over_ranks(values: dict[str, float], world: World, device: torch.device) -> dict[str, float]:
-    """Each value averaged over all processes (same keys on every rank)."""
+    """Each value averaged over all processes (same keys on every rank), in the order of ``values``."""
     if not world.distributed or not values:
         return dict(values)
-    keys = sorted(values)
+    keys = sorted(values)  # the same order on every rank for the reduction
     t = torch.tensor([float(values[k]) for k in keys], dtype=torch.float64, device=device)
     dist.all_reduce(t)
     t /= world.size
-    return dict(zip(keys, t.tolist()))
+    reduced = dict(zip(keys, t.tolist()))
+    return {k: reduced[k] for k in values}
 
 
 def sum_over_ranks(value: int, world: World, device: torch.device) -> int:

@@ -1,9 +1,11 @@
 """What a training run writes to watch it: ``metrics.csv`` and TensorBoard event files.
 
-``metrics.csv``: one row per logged iteration, columns ``iteration``, ``seconds`` (wall
-time of that iteration), ``lr``, every loss term (weighted, as summed into the total),
-``total``, ``depth_failed`` and ``skipped`` (samples the iteration lost), then the
-validation figures (``val_*``, filled on validation rows only). On ``--resume`` the file
+``metrics.csv``: one row per logged iteration, columns ``iteration``, ``seconds`` (mean
+wall time per iteration since the previous row), ``lr``, every loss term (weighted, as
+summed into the total; means over the iterations since the previous row), ``total``,
+``depth_failed`` (batches so far whose depth terms were zeroed because pose or
+triangulation failed) and ``skipped`` (unreadable samples so far; both summed over the
+processes), then the validation figures (``val_*``, filled on validation rows only). On ``--resume`` the file
 is cut back to the checkpoint's iteration and continued, so the curve has no repeats.
 
 TensorBoard (``tb/``): every column above as a scalar (``loss/<term>``, ``val/<name>``,

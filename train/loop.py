@@ -306,15 +306,29 @@ def _threads(cfg: TrainConfig, world: dist_util.World) -> int:
 
 
 def _peak_rss_mb() -> float:
-    import resource
+    from trianflow_vo.io.run_writer import peak_rss_mb  # the process's own peak (VmHWM), not an inherited one
 
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return peak_rss_mb()
 
 
 def train(prep: Prepared, world: dist_util.World | None = None,
           on_progress: Callable[[dict], None] | None = None) -> TrainResult:
     """Run the stage; rank 0 writes ``checkpoint.pt``, ``metrics.csv``, ``tb/``, ``config.yaml`` and
-    ``train.json`` in the output folder. Ctrl-C / SIGTERM: checkpoint, status ``interrupted``."""
+    ``train.json`` in the output folder. Ctrl-C / SIGTERM: checkpoint, status ``interrupted``.
+
+    torch's and OpenCV's thread counts are set for the run (``runtime.threads``) and restored after."""
+    import cv2
+
+    before = (torch.get_num_threads(), cv2.getNumThreads())
+    try:
+        return _train(prep, world, on_progress)
+    finally:
+        torch.set_num_threads(before[0])
+        cv2.setNumThreads(before[1])
+
+
+def _train(prep: Prepared, world: dist_util.World | None, on_progress: Callable[[dict], None] | None
+           ) -> TrainResult:
     import cv2
 
     from trianflow_vo.config import write_config_yaml
@@ -376,8 +390,10 @@ def train(prep: Prepared, world: dist_util.World | None = None,
     if world.distributed:
         from torch.nn.parallel import DistributedDataParallel
 
+        # every trained parameter is in every step's graph (the objective's zero-weight anchor), so DDP
+        # needs no search for unused ones
         ddp_model = DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None,
-                                            find_unused_parameters=stage != "flow")
+                                            find_unused_parameters=False)
 
     sampler = ShardedBatches(len(dataset), per_rank, world.rank, world.size, seed, start)
     stream = StreamPairs(dataset, seed, cfg.data.flip)
@@ -472,7 +488,7 @@ def train(prep: Prepared, world: dist_util.World | None = None,
                     res.update(odometry_ate(Path(val_gt[0]), Path(val_gt[1]), nets.get("flow"), nets.get("depth"),
                                             size, threads=threads))
                 except Exception as exc:  # a failed validation run must not end the training
-                    msg = f"validation odometry at iteration {it} failed: {' '.join(str(exc).split())[:200]}"
+                    msg = f"validation odometry at iteration {it} failed: {' '.join(str(exc).split())[:300]}"
                     log.warning(msg)
                     status_doc["warnings"].append(msg)
         finally:
@@ -488,6 +504,7 @@ def train(prep: Prepared, world: dist_util.World | None = None,
     counts = {"skipped": 0, "depth_failed": 0, "nonfinite": 0}
     interval: dict[str, float] = {}
     interval_n = 0
+    interval_s = 0.0
     last_terms: dict[str, float] = {}
     it = start
     status, error = "completed", None
@@ -518,20 +535,23 @@ def train(prep: Prepared, world: dist_util.World | None = None,
                 else:
                     scaler.step(optimizer)
                     scaler.update()
-                counts["depth_failed"] += int(outp.depth_failed)
+                counts["depth_failed"] += int(outp.depth_zeroed)
                 it += 1
                 dt = time.perf_counter() - t0
                 times.append(dt)
                 for k, v in outp.terms.items():
                     interval[k] = interval.get(k, 0.0) + float(v)
                 interval_n += 1
+                interval_s += dt
                 if it % cfg.schedule.log_every == 0 or it == cfg.optim.iters:
                     means = dist_util.mean_over_ranks({k: v / interval_n for k, v in interval.items()}, world,
                                                       device)
-                    interval, interval_n = {}, 0
+                    sec = interval_s / interval_n  # mean wall time per iteration since the last row
+                    interval, interval_n, interval_s = {}, 0, 0.0
                     last_terms = means
-                    row = {"iteration": it, "seconds": dt, "lr": cfg.optim.lr, **means,
-                           "skipped": counts["skipped"], "depth_failed": counts["depth_failed"]}
+                    totals = {k: dist_util.sum_over_ranks(counts[k], world, device)
+                              for k in ("skipped", "depth_failed")}  # every process's, not rank 0's alone
+                    row = {"iteration": it, "seconds": sec, "lr": cfg.optim.lr, **means, **totals}
                     do_val = (cfg.schedule.val_every and it % cfg.schedule.val_every == 0) or it == cfg.optim.iters
                     if do_val and val_names:
                         vres = validate(it)
@@ -543,7 +563,7 @@ def train(prep: Prepared, world: dist_util.World | None = None,
                             csv_log = MetricsCSV(out / METRICS_NAME, terms, val_names, header)
                         csv_log.write(row)
                         tb.scalars(it, {k: v for k, v in means.items()}, "loss/")
-                        tb.scalars(it, {"lr": cfg.optim.lr, "time/iteration_s": dt}, "")
+                        tb.scalars(it, {"lr": cfg.optim.lr, "time/iteration_s": sec}, "")
                     if on_progress is not None and main:
                         on_progress({"iteration": it, "total": cfg.optim.iters, "start": start,
                                      "seconds": float(np.median(times[-50:])), "terms": means, **counts})

@@ -15,12 +15,14 @@ Stages (the authors' modes ``flow``, ``depth``, ``depth_pose``):
   (``kitti_3stage``) the depth weights are 0: the flow net is refined by the geometric
   terms and the depth net only provides the rigid flow of the flow error.
 
-When an item's pose or triangulation fails (no ``F``, no valid pose, the triangulation's
-flags), its depth terms (``pt_depth``, ``pj_depth``, ``flow_error``, ``depth_smooth``) are
-zero and it still counts in the batch mean, as the authors zero (not skip) them. The
-authors zero the whole batch when any item fails (NYUv2 aside); here only the failing
-items are zeroed. Every term is a batch mean; ``total`` is the weighted sum (terms of
-weight 0 are reported but not added). ``total`` always depends on the outputs of the nets
+When the pose or the triangulation of an item fails (no ``F``, no valid pose, the
+triangulation's flags), the depth terms (``pt_depth``, ``pj_depth``, ``flow_error``,
+``depth_smooth``) are zeroed rather than skipped, as the authors do. With
+``depth_failure="batch"`` (the default, the authors' rule: their filters flag the whole
+batch) one failing item zeroes the depth terms of the whole batch; with ``"item"`` (our
+option) only the failing items' terms are zero and they still count in the batch mean.
+Every term is a batch mean; ``total`` is the weighted sum (terms of weight 0 are reported
+but not added). ``total`` always depends on the outputs of the nets
 that ran with gradient (times 0 where nothing else does), so ``backward`` works and every
 trained parameter gets a (possibly zero) gradient even when all depth terms are zeroed.
 
@@ -31,6 +33,11 @@ visibility-only valid mask is (``fb_consistency=False``).
 
 Images are ``(N, 3, H, W)`` BGR in [0, 1] (the flow net's input); the depth net gets
 ``(img - 0.45) / 0.225`` (:data:`trianflow_vo.models.checkpoint.DEPTH_NORM`).
+
+Mixed precision: called under ``torch.autocast`` (CUDA AMP), only the networks' forward
+passes run in half precision; their outputs are cast back to the images' dtype and the
+masks, ``F``, ``D_epi`` (a 0.1-0.5 px band), triangulation and losses run with autocast off
+(float16 resolves 0.5 px at x = 832).
 """
 
 from __future__ import annotations
@@ -50,6 +57,7 @@ INLIER_PX = 0.1  # D_epi below this: inlier (lower edge of the geometric band)
 RIGID_PX = 0.5  # D_epi below this: rigid (upper edge of the band)
 FLOW_TERMS = ("photometric", "flow_smooth")
 DEPTH_TERMS = ("pt_depth", "pj_depth", "flow_error", "depth_smooth")
+DEPTH_FAILURE_MODES = ("batch", "item")  # what a failed pose/triangulation zeroes: the batch (authors) or the item
 STAGE_TERMS = {"flow": FLOW_TERMS, "depth": ("geo", *DEPTH_TERMS), "joint": (*FLOW_TERMS, "geo", *DEPTH_TERMS)}
 
 
@@ -60,7 +68,9 @@ class LossWeights:
     ``w_ssim`` is the SSIM share of the photometric mix (L1 gets ``1 - w_ssim``);
     ``w_flow_consis`` is in the authors' configs but their term is switched off (kept for
     the record, no effect). ``fb_consistency`` False: the valid mask is visibility only
-    (the authors' NYUv2 setting).
+    (the authors' NYUv2 setting). ``depth_failure``: ``"batch"`` (the authors: an item whose
+    pose or triangulation fails zeroes the depth terms of the whole batch) or ``"item"``
+    (ours: only that item's).
     """
 
     w_ssim: float = 0.85
@@ -72,6 +82,7 @@ class LossWeights:
     w_flow_error: float = 0.0
     w_depth_smooth: float = 1e-3
     fb_consistency: bool = True
+    depth_failure: str = "batch"
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -79,6 +90,11 @@ class LossWeights:
             if f.name == "fb_consistency":
                 if not isinstance(v, bool):
                     raise ConfigError(f"must be true or false, got {v!r}", source="loss weights", key=f.name)
+                continue
+            if f.name == "depth_failure":
+                if v not in DEPTH_FAILURE_MODES:
+                    raise ConfigError(f"must be one of {', '.join(DEPTH_FAILURE_MODES)}, got {v!r}",
+                                      source="loss weights", key=f.name)
                 continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ConfigError(f"must be a finite number >= 0, got {v!r}", source="loss weights", key=f.name)
@@ -134,7 +150,9 @@ class StepOutput:
         total: scalar tensor, the weighted sum (with gradient unless run under no_grad).
         terms: every weighted term of the stage by name (:data:`STAGE_TERMS`), plus
             ``"total"``; floats.
-        depth_failed: batch items whose depth terms were zeroed (pose or triangulation failed).
+        depth_failed: batch items whose pose or triangulation failed.
+        depth_zeroed: True when depth terms of this batch were zeroed because of such a
+            failure (``depth_failure="batch"``: all of them; ``"item"``: the failed items').
         visuals: detached tensors of the first item: ``"flow12"`` ``(2, H, W)``,
             ``"valid12"`` ``(1, H, W)``, ``"rigid12"`` ``(1, H, W)`` (stages with geometry),
             ``"disp1"`` ``(1, H, W)`` sigmoid disparity (when a depth net ran).
@@ -143,6 +161,7 @@ class StepOutput:
     total: torch.Tensor
     terms: dict[str, float]
     depth_failed: int = 0
+    depth_zeroed: bool = False
     visuals: dict[str, torch.Tensor] = field(default_factory=dict)
 
 
@@ -161,24 +180,35 @@ def _check_inputs(img1, img2, K, K_inv, weights) -> None:
             raise InputError(f"{name}: expected ({n}, 3, 3), got {tuple(getattr(x, 'shape', ()))}")
 
 
-def _flow_pyramids(flow_net, img1: torch.Tensor, img2: torch.Tensor):
-    """Both directions' multiscale flows (the authors' 4 outputs), the pyramid run once."""
+def _net_autocast(amp: tuple[str, bool, torch.dtype]):
+    """The caller's autocast (mixed precision) for a network's forward pass."""
+    device_type, enabled, dtype = amp
+    return torch.autocast(device_type, dtype=dtype, enabled=enabled)
+
+
+def _flow_pyramids(flow_net, img1: torch.Tensor, img2: torch.Tensor, amp):
+    """Both directions' multiscale flows (the authors' 4 outputs), the pyramid run once; in the
+    images' dtype whatever the autocast."""
     n, _, h, w = img1.shape
     flow_net.check_size(h, w)
-    feats = flow_net.pyramid(torch.cat((img1, img2), dim=0))
-    swapped = [torch.cat((f[n:], f[:n]), dim=0) for f in feats]
-    outs = flow_net.multiscale(flow_net.decode(feats, swapped), (h, w))
+    with _net_autocast(amp):
+        feats = flow_net.pyramid(torch.cat((img1, img2), dim=0))
+        swapped = [torch.cat((f[n:], f[:n]), dim=0) for f in feats]
+        outs = flow_net.multiscale(flow_net.decode(feats, swapped), (h, w))
+    outs = [f.to(img1.dtype) for f in outs]
     return [f[:n] for f in outs], [f[n:] for f in outs]
 
 
-def _run_depth(depth_net, img1: torch.Tensor, img2: torch.Tensor):
+def _run_depth(depth_net, img1: torch.Tensor, img2: torch.Tensor, amp):
     from trianflow_vo.models.checkpoint import DEPTH_NORM
     from trianflow_vo.models.depth_net import disp_to_depth
 
     n = img1.shape[0]
     mean = torch.tensor(DEPTH_NORM["mean"], dtype=img1.dtype, device=img1.device).view(1, 3, 1, 1)
     std = torch.tensor(DEPTH_NORM["std"], dtype=img1.dtype, device=img1.device).view(1, 3, 1, 1)
-    sigma = depth_net((torch.cat((img1, img2), dim=0) - mean) / std)[0]
+    with _net_autocast(amp):
+        sigma = depth_net((torch.cat((img1, img2), dim=0) - mean) / std)[0]
+    sigma = sigma.to(img1.dtype)
     cfg = depth_net.config
     depth = disp_to_depth(sigma, cfg.min_depth, cfg.max_depth)
     return sigma[:n], sigma[n:], depth[:n], depth[n:]
@@ -256,6 +286,15 @@ def compute_losses(stage: str, img1: torch.Tensor, img2: torch.Tensor, K: torch.
     if stage == "depth" and flow_net is None and flows is None:
         raise ValueError("stage 'depth' needs flow_net or flows=(flow12, flow21)")
 
+    # Mixed precision (CUDA AMP) is for the networks only: pixel coordinates, F, D_epi (0.1 px band),
+    # triangulation and the losses run in the images' dtype (float16 resolves 0.5 px at x = 832).
+    dev = img1.device.type
+    amp = (dev, torch.is_autocast_enabled(dev), torch.get_autocast_dtype(dev))
+    with torch.autocast(dev, enabled=False):
+        return _compute_losses(stage, img1, img2, K, K_inv, weights, flow_net, depth_net, flows, generator, amp)
+
+
+def _compute_losses(stage, img1, img2, K, K_inv, weights, flow_net, depth_net, flows, generator, amp) -> StepOutput:
     from trianflow_vo.train.losses.epipolar import (epipolar_distance, fundamental_from_flow,
                                                     geometric_loss_per_image, rigid_mask)
     from trianflow_vo.train.losses.flow import flow_loss
@@ -269,7 +308,7 @@ def compute_losses(stage: str, img1: torch.Tensor, img2: torch.Tensor, K: torch.
 
     # -- flow ---------------------------------------------------------------------------------
     if stage in ("flow", "joint"):
-        flows12, flows21 = _flow_pyramids(flow_net, img1, img2)
+        flows12, flows21 = _flow_pyramids(flow_net, img1, img2, amp)
         fl = flow_loss(img1, img2, flows12, flows21, w_ssim=wt.w_ssim, w_flow_smooth=wt.w_flow_smooth,
                        use_consistency=wt.fb_consistency, n_scales=N_SCALES)
         terms["photometric"] = fl.photometric
@@ -286,7 +325,7 @@ def compute_losses(stage: str, img1: torch.Tensor, img2: torch.Tensor, K: torch.
                     if tuple(f.shape) != (n, 2, h, w):
                         raise InputError(f"flows: {name} expected ({n}, 2, {h}, {w}), got {tuple(f.shape)}")
             else:
-                f12s, f21s = _flow_pyramids(flow_net, img1, img2)
+                f12s, f21s = _flow_pyramids(flow_net, img1, img2, amp)
                 flow12, flow21 = f12s[0], f21s[0]
             valid12 = valid_mask(flow12, flow21, wt.fb_consistency)
             score12 = score_map(valid12, fb_difference(flow12, flow21))
@@ -304,12 +343,14 @@ def compute_losses(stage: str, img1: torch.Tensor, img2: torch.Tensor, K: torch.
         visuals["rigid12"] = rigid12[0].detach()
 
         # -- depth ----------------------------------------------------------------------------
-        sigma1, sigma2, depth1, depth2 = _run_depth(depth_net, img1, img2)
+        sigma1, sigma2, depth1, depth2 = _run_depth(depth_net, img1, img2, amp)
         anchor = anchor + 0.0 * (sigma1.mean() + sigma2.mean())
         visuals["disp1"] = sigma1[0].detach()
         per_item, ok = _depth_terms(img1, img2, flow12, score12.detach(), rigid12, F, F_ok, K, K_inv,
                                     sigma1, sigma2, depth1, depth2, generator)
         depth_failed = int(n - int(ok.sum()))
+        if depth_failed and wt.depth_failure == "batch":  # the authors: the whole batch's depth terms are zeroed
+            per_item = {k: torch.zeros_like(v) for k, v in per_item.items()}
         w_of = {"pt_depth": wt.w_pt_depth, "pj_depth": wt.w_pj_depth, "flow_error": wt.w_flow_error,
                 "depth_smooth": wt.w_depth_smooth}
         for k in DEPTH_TERMS:
@@ -323,4 +364,5 @@ def compute_losses(stage: str, img1: torch.Tensor, img2: torch.Tensor, K: torch.
             total = total + v
     out_terms = {k: float(v.detach()) for k, v in terms.items()}
     out_terms["total"] = float(total.detach())
-    return StepOutput(total=total, terms=out_terms, depth_failed=depth_failed, visuals=visuals)
+    return StepOutput(total=total, terms=out_terms, depth_failed=depth_failed, depth_zeroed=depth_failed > 0,
+                      visuals=visuals)

@@ -16,6 +16,8 @@ import torch
 
 from trianflow_vo.models.checkpoint import DEFAULT_CHANNEL_ORDER, DEPTH_NORM, FLOW_NORM
 
+MOVING_BRANCHES = ("two-view", "pnp")  # the branches of a run's frames that can move the camera
+
 
 @torch.no_grad()
 def validation_losses(compute, loader, max_pairs: int, device: torch.device) -> tuple[dict[str, float], int]:
@@ -59,7 +61,8 @@ def odometry_ate(seq: Path, gt: Path, flow_net, depth_net, size: tuple[int, int]
     """Run the odometry on ``seq`` with the current networks and evaluate it against ``gt``.
 
     Without a flow network (stage depth with DIS flow) the run uses DIS flow. Returns
-    ``{"ate_rmse": m, "ate_pct": % of path, "t_err": %, "frames": n}``.
+    ``{"ate_rmse": m, "ate_pct": % of path, "t_err": %, "frames": n}``. Raises ValueError when
+    no frame moved the camera (every frame rotation-only or static: no trajectory to align).
     """
     from trianflow_vo.config import Config, merge_dict
     from trianflow_vo.eval import evaluate_files
@@ -78,6 +81,11 @@ def odometry_ate(seq: Path, gt: Path, flow_net, depth_net, size: tuple[int, int]
         if scale_from is not None:
             cfg = replace(cfg, scale=replace(cfg.scale, source=scale_from))
         summary = run(seq, tmp / "run", cfg)
+        counts = summary.get("branch_counts") or {}
+        if counts and not any(int(counts.get(b, 0)) for b in MOVING_BRANCHES):
+            shown = ", ".join(f"{b} {n}" for b, n in counts.items() if n)
+            raise ValueError(f"the odometry with the current networks never left its first pose ({shown}; "
+                             "typically a flow below the two-view threshold): no ATE")
         result = evaluate_files(tmp / "run", gt)
     m = result.metrics
     path = float(m.get("path_length") or 0.0)

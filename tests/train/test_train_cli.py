@@ -20,8 +20,11 @@ from click.testing import CliRunner  # noqa: E402
 from trianflow_vo.cli.main import main  # noqa: E402
 
 SIZE = "64x192"
-TINY = ["--size", SIZE, "--batch", "2", "--workers", "0", "--set", "schedule.log_every=1",
-        "--set", "schedule.image_every=2", "--set", "schedule.checkpoint_every=2", "--set", "schedule.val_every=0"]
+# one torch thread: on a machine shared with other jobs, two OpenMP threads on two busy cores make an
+# iteration 7-26x slower (measured); the behaviour tested does not depend on it
+TINY = ["--size", SIZE, "--batch", "2", "--workers", "0", "--set", "runtime.threads=1",
+        "--set", "schedule.log_every=1", "--set", "schedule.image_every=2", "--set", "schedule.checkpoint_every=2",
+        "--set", "schedule.val_every=0"]
 
 
 @pytest.fixture(scope="module")
@@ -132,3 +135,66 @@ def test_torchrun_two_cpu_processes(clip, tmp_path):
     assert status["world_size"] == 2 and status["batch_per_process"] == 1 and status["status"] == "completed"
     assert list(out.glob("checkpoint*.pt")) == [out / "checkpoint.pt"]
     assert len(_rows(out)) == 3
+
+
+def test_init_from_the_authors_layout_and_depth_from_dis(clip, tmp_path):
+    """--init reads the authors' .pth layouts (full: both nets; flow-only: the flow net); stage depth
+    trains without a flow network with --flow-source dis; a flow-only file cannot start stage joint."""
+    import torch
+
+    from trianflow_vo.models.authors import LAYOUT_FLOW, LAYOUT_FULL, deterministic_checkpoint
+
+    full, flow_only = tmp_path / "full.pth", tmp_path / "flow.pth"
+    torch.save(deterministic_checkpoint(LAYOUT_FULL), full)
+    torch.save(deterministic_checkpoint(LAYOUT_FLOW), flow_only)
+    res = _train(["--stage", "joint", str(clip), "--out", str(tmp_path / "j"), "--init", str(full), "--iters", "1",
+                  *TINY])
+    assert res.exit_code == 0, res.output
+    status = json.loads((tmp_path / "j" / "train.json").read_text())
+    assert status["init_format"] == "trianflow-authors-full" and status["status"] == "completed"
+    res = _train(["--stage", "depth", str(clip), "--out", str(tmp_path / "d"), "--init", str(flow_only), "--iters",
+                  "1", *TINY])
+    assert res.exit_code == 0, res.output
+    res = _train(["--stage", "joint", str(clip), "--out", str(tmp_path / "j2"), "--init", str(flow_only), "--iters",
+                  "1", *TINY])
+    assert res.exit_code == 1 and "holds no depth network" in res.output
+    assert not (tmp_path / "j2").exists()
+    res = _train(["--stage", "depth", str(clip), "--out", str(tmp_path / "dis"), "--flow-source", "dis",
+                  "--iters", "2", *TINY])
+    assert res.exit_code == 0, res.output
+    status = json.loads((tmp_path / "dis" / "train.json").read_text())
+    assert any("OpenCV DIS" in w and "not the paper" in w for w in status["warnings"])
+    assert status["config"]["model"]["flow_source"] == "dis"
+    rows = _rows(tmp_path / "dis")
+    assert len(rows) == 2 and float(rows[-1]["pt_depth"]) >= 0
+    # the checkpoint of a DIS run holds the depth network only
+    from trianflow_vo.models.checkpoint import load_checkpoint
+
+    ck = load_checkpoint(tmp_path / "dis" / "checkpoint.pt")
+    assert ck.flow is None and ck.depth is not None
+
+
+def test_interrupt_writes_a_checkpoint_and_resume_continues(clip, tmp_path):
+    """Ctrl-C during iteration 3: the checkpoint holds iteration 3, train.json says interrupted, and
+    --resume continues from there."""
+    from trianflow_vo.cli.train_cmd import build_train_config
+    from trianflow_vo.train import loop
+
+    out = tmp_path / "int"
+    cfg = build_train_config("flow", None, ("schedule.log_every=1", "schedule.checkpoint_every=100",
+                                            "schedule.image_every=0", "data.workers=0", "runtime.threads=1"),
+                             {"iters": 6, "batch": 2, "size": (64, 192)})
+
+    def stop(info):
+        if info["iteration"] == 3:
+            raise KeyboardInterrupt
+
+    prep = loop.prepare(loop.TrainRequest(data=[clip], out_dir=out, config=cfg))
+    result = loop.train(prep, on_progress=stop)
+    assert result.status == "interrupted" and result.iteration == 3
+    status = json.loads((out / "train.json").read_text())
+    assert status["status"] == "interrupted" and status["checkpoint_iteration"] == 3
+    assert not list(out.glob("*.tmp"))
+    res = _train(["--stage", "flow", str(clip), "--out", str(out), "--resume", *TINY])
+    assert res.exit_code == 0, res.output
+    assert [int(r["iteration"]) for r in _rows(out)] == [1, 2, 3, 4, 5, 6]

@@ -34,6 +34,9 @@ def test_preset_loss_weights_are_the_authors(dataset, stage, w_geo, w_pt, w_pj, 
     assert cfg.optim.lr == 1e-4 and cfg.optim.batch == 8
     assert cfg.optim.iters == (400000 if dataset == "nyu" else 200000)
     assert cfg.data.size == ((448, 576) if dataset == "nyu" else (256, 832))
+    assert cfg.data.gap == (10 if dataset == "nyu" else 1)  # the authors pair NYUv2 raw frames n and n + 10
+    assert cfg.data.exclude_eigen_test is (dataset == "kitti")
+    assert lw.depth_failure == "batch"  # the authors zero a failed batch's depth terms
 
 
 def test_default_is_the_kitti_preset_of_the_stage():

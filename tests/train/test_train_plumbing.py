@@ -98,3 +98,16 @@ def test_metrics_csv_is_cut_back_on_resume(tmp_path):
     rows = list(csv.DictReader(open(p)))
     assert [r["iteration"] for r in rows] == ["10", "20", "30"]
     assert rows[-1]["photometric"] == "0.25" and rows[-1]["val_ate_pct"] == "1.5" and rows[0]["val_ate_pct"] == ""
+
+
+def test_validation_odometry_that_never_moves_has_no_ate(tmp_path, monkeypatch):
+    """Networks whose flow never passes the two-view tests give a run of rotation-only frames: no
+    trajectory to align, so the validation says so instead of an alignment error."""
+    import trianflow_vo.pipeline as pipeline
+    from trianflow_vo.train import validation
+
+    monkeypatch.setattr(validation, "export_current", lambda *a: (None, None))
+    monkeypatch.setattr(pipeline, "run", lambda *a, **k: {"branch_counts": {"init": 1, "two-view": 0, "pnp": 0,
+                                                                            "rotation": 50, "identity": 0}})
+    with pytest.raises(ValueError, match=r"never left its first pose \(init 1, rotation 50"):
+        validation.odometry_ate(tmp_path, tmp_path / "poses.txt", None, None, (64, 192))
