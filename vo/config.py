@@ -268,7 +268,7 @@ class BackendConfig(_Section):
     prior_rot_deg: float = _opt(0.1, "rotation sigma of those priors, degrees", range=_Range(0.0, lo_open=True))
     huber_px: float = _opt(1.0, "Huber threshold of the reprojection errors, pixels", range=_Range(0.0, lo_open=True))
     max_iterations: int = _opt(5, "Levenberg-Marquardt iterations per window at most", range=_Range(1, 1000))
-    every: int = _opt(1, "adjust the window on every n-th keyframe (tracks follow every keyframe)",
+    every: int = _opt(2, "adjust the window on every n-th keyframe (tracks follow every keyframe)",
                       range=_Range(1, 100))
     max_tracks: int = _opt(250, "most tracks alive at once", range=_Range(10, 100000))
     cell_px: int = _opt(32, "grid cell (pixels) over which new tracks are spread, one per cell",
