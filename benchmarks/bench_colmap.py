@@ -43,7 +43,7 @@ Usage (from the repository root)::
 
 Default clips: the three shared clips in ``../shared/data`` (KITTI 00 frames
 0-150, KITTI 06 frames 0-50, 7-Scenes kitchen frames 0-499), plus every sequence
-folder under ``/work/bench_data`` when that folder exists (``--bench-data``).
+folder under ``../bench_data`` (beside the repository; or ``$TRIANFLOW_BENCH_DATA``) when that folder exists (``--bench-data``).
 Cases run stride by stride (all clips at the first stride first). The JSON is
 rewritten after every case; the markdown section is appended to ``--md`` (or
 replaces this script's own earlier section there) at the end. ``--md-from-json``
@@ -64,7 +64,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_DATA = ROOT.parent / "shared" / "data"
 DEFAULT_CLIPS = ("kitti00-f0000-0150", "kitti06-f0000-0050", "7scenes-kitchen-f0000-0499")
-DEFAULT_BENCH_DATA = Path("/work/bench_data")
+DEFAULT_BENCH_DATA = Path(os.environ.get("TRIANFLOW_BENCH_DATA", Path(__file__).resolve().parents[2] / "bench_data"))
 SECTION_PREFIX = "## COLMAP reference"
 SEED = 0
 

@@ -14,7 +14,7 @@ Cases:
   into ``benchmarks/out/synthetic/`` (deterministic; re-rendered when the generator's
   source changes), stride 1 x ``--seeds``; for each, the branches the tool may take and
   whether every frame took one of them;
-- if the folder exists, every sequence under ``--bench-data`` (default ``/work/bench_data``:
+- if the folder exists, every sequence under ``--bench-data`` (default ``../bench_data`` beside the repository, or ``$TRIANFLOW_BENCH_DATA``:
   real clips not used for tuning), x ``--strides`` x ``--seeds``.
 
 Per run: frames, ground-truth path length, ATE RMSE and ATE as % of the path, branch
@@ -529,7 +529,8 @@ def main(argv=None) -> int:
     ap.add_argument("--jobs", type=int, default=1, help="runs at a time (default 1: clean frames/s)")
     ap.add_argument("--data", type=Path, default=Path(os.environ.get("TRIANFLOW_SHARED_DATA",
                                                                      REPO.parent / "shared" / "data")))
-    ap.add_argument("--bench-data", type=Path, default=Path("/work/bench_data"))
+    ap.add_argument("--bench-data", type=Path,
+                    default=Path(os.environ.get("TRIANFLOW_BENCH_DATA", REPO.parent / "bench_data")))
     ap.add_argument("--no-synthetic", action="store_true")
     ap.add_argument("--out", type=Path, default=OUT, help="run folders and the synthetic cache go here")
     ap.add_argument("--json", type=Path, default=None, help="results (default OUT/robustness-LABEL.json)")
