@@ -262,10 +262,6 @@ class BackendConfig(_Section):
                        f"{_show(v)} is out of range; must be 0 (off) or in [3, 100]", rule="0 or [3, 100]")
     fixed: int = _opt(2, "oldest keyframes of the window held fixed (they hold the gauge; two also the scale)",
                       range=_Range(1, 99))
-    prior_trans: float = _opt(0.0, "soft prior on the window's other keyframes (all but the newest) at their "
-                                   "current pose: translation sigma as a fraction of the keyframe step; 0 = none",
-                              range=_Range(0.0))
-    prior_rot_deg: float = _opt(0.1, "rotation sigma of those priors, degrees", range=_Range(0.0, lo_open=True))
     huber_px: float = _opt(1.0, "Huber threshold of the reprojection errors, pixels", range=_Range(0.0, lo_open=True))
     max_iterations: int = _opt(5, "Levenberg-Marquardt iterations per window at most", range=_Range(1, 1000))
     every: int = _opt(2, "adjust the window on every n-th keyframe (tracks follow every keyframe)",

@@ -203,13 +203,13 @@ class FrontEnd:
         return self.rng.choice(idx, cap, replace=False) if idx.size > cap else idx
 
     # -- branches -----------------------------------------------------------------------
-    def rotation(self, m: Matches, tm: StageTimer, residuals: bool = False):
-        """``(R_rot (3, 3), median parallax px)``: the rotation-only fit and what it leaves;
-        with ``residuals`` also the ``(N,)`` parallax of every match (pixels)."""
+    def rotation(self, m: Matches, tm: StageTimer) -> tuple[np.ndarray, float, np.ndarray]:
+        """``(R_rot (3, 3), median parallax px, parallax (N,) px)``: the rotation-only fit and what
+        it leaves of every match."""
         t0 = time.perf_counter()
         R_rot, par = fit_rotation(m.pts_ref, m.pts_cur, self.K)
         tm.add("rotation", t0)
-        return (R_rot, float(np.median(par)), par) if residuals else (R_rot, float(np.median(par)))
+        return R_rot, float(np.median(par)), par
 
     def motion_test(self, m: Matches, rotation_px: np.ndarray, tm: StageTimer):
         """Which motion the matches show (``keyframes.policy`` gric).
@@ -273,13 +273,8 @@ class FrontEnd:
         tr = keyframe.tracks
         if len(tr):
             X = unproject(tr.pts, tr.depth, self.K) @ T_cur_ref[:3, :3].T + T_cur_ref[:3, 3]
-            h, w = self.camera.size_hw
-            z = X[:, 2]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                uv = (X @ self.K.T)[:, :2] / z[:, None]
-            keep = (z > 0) & np.isfinite(uv).all(axis=1)
-            keep &= (uv[:, 0] > -0.5) & (uv[:, 0] < w - 0.5) & (uv[:, 1] > -0.5) & (uv[:, 1] < h - 0.5)
-            tracks = Tracks(tr.ids[keep], uv[keep], z[keep], tr.weight[keep])
+            uv, keep = self.camera.project(X)
+            tracks = Tracks(tr.ids[keep], uv[keep], X[keep, 2], tr.weight[keep])
         else:
             tracks = Tracks.empty()
         return replace(sol, reason=sol.reason + note, tracks=tracks, step_norm=None)
@@ -357,13 +352,14 @@ class FrontEnd:
             if okp and tn > 0:
                 ratio = tn / scale
                 stats["pnp_ratio"] = ratio
-                if abs(np.log(ratio)) > np.log(self.cfg.scale.pnp_check_ratio) and self.cfg.keyframes.policy == "gric":
+                disagrees = abs(np.log(ratio)) > np.log(self.cfg.scale.pnp_check_ratio)
+                if disagrees and self.cfg.keyframes.policy == "gric":
                     # the two-view step is not to be trusted: PnP on the held keyframe, no new keyframe
                     T_ref_cam = invert_T(make_T(Rp, tp))
                     return Solution(Branch.PNP, f"two-view scale disagreed with PnP by {ratio:.2f}x: PnP pose, "
                                     "keyframe kept", keyframe.T_world_cam @ T_ref_cam, T_ref_cam,
                                     {"inliers": n_in, "pnp_ratio": ratio})
-                if abs(np.log(ratio)) > np.log(self.cfg.scale.pnp_check_ratio):
+                if disagrees:
                     R, t_unit, scale = Rp, tp / tn, tn
                     X, valid, angle = triangulate_midpoint(q1, q2, K, R, t_unit, min_angle=g.min_angle_rad)
                     d_ref, w_ref, w_new, w_scale = self._depths_at(ref, idx2, valid, angle)

@@ -92,14 +92,17 @@ class Odometry:
     def _solve_to_keyframe(self, kf: Keyframe, m: Matches, cur: Keyframe, stats: dict, tm: StageTimer):
         """Our policy (``scale.source`` triangulation / keyframe-depth): ``(Solution, reference depth)``.
 
-        Static camera (median flow under ``keyframes.static_flow_px``): IDENTITY. Median
-        parallax under ``keyframes.min_parallax_px``: PnP/rotation, keyframe kept. Else
-        the two-view step, after which the frame is the new keyframe."""
+        Static camera (median flow under ``keyframes.static_flow_px``): IDENTITY. Then, by
+        ``keyframes.policy``: ``gric`` (rotation only preferred by GRIC, or the translation
+        direction's sigma over ``max_direction_deg``) or ``parallax`` (median parallax under
+        ``min_parallax_px``) give PnP/rotation with the keyframe kept (handed on under
+        ``gric`` when its flow exceeds ``max_flow_fraction`` of the width); else the two-view
+        step, after which the frame is the new keyframe."""
         kc = self.cfg.keyframes
         median_flow = float(np.median(m.flow_mag))
         if median_flow < kc.static_flow_px:
             return identity_solution(kf.T_world_cam, f"median flow {median_flow:.2f} px: camera static"), None
-        R_rot, parallax, par = self.front.rotation(m, tm, residuals=True)
+        R_rot, parallax, par = self.front.rotation(m, tm)
         stats["parallax_px"] = parallax
         ref = self._reference(kf, tm)
         if kc.policy == "parallax":
@@ -130,7 +133,7 @@ class Odometry:
     def _solve_pairwise(self, kf: Keyframe, m: Matches, cur: Keyframe, stats: dict, tm: StageTimer):
         """The authors' policy (``scale.source`` depth): every pair scaled by the network depth of
         the new frame; every frame becomes the next reference."""
-        R_rot, parallax = self.front.rotation(m, tm)
+        R_rot, parallax, _ = self.front.rotation(m, tm)
         stats["parallax_px"] = parallax
         ref = self._reference(kf, tm)
         sol = self.front.two_view_to_depth(kf, ref, self._reference(cur, tm), m, R_rot, tm)

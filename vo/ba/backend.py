@@ -71,8 +71,7 @@ class WindowBackend:
         self.K = np.asarray(K, dtype=np.float64)
         self.size_hw = (int(size_hw[0]), int(size_hw[1]))
         self.warn = warn
-        self.tracks = TrackTable(self.size_hw, cell_px=config.cell_px, max_tracks=config.max_tracks,
-                                 fb_px=config.track_fb_px, epi_px=config.track_epi_px)
+        self.tracks = self._new_tracks()
         self.keyframes: list[int] = []  # window order, oldest first (all keyframes seen, trimmed)
         self.poses: dict[int, np.ndarray] = {}  # keyframe -> current T_world_cam
         self.steps: dict[int, tuple[int, np.ndarray]] = {}  # keyframe -> (its reference, front-end T_ref_cam)
@@ -141,9 +140,13 @@ class WindowBackend:
         }
 
     # -- internals --------------------------------------------------------------------------------------
+    def _new_tracks(self) -> TrackTable:
+        c = self.cfg
+        return TrackTable(self.size_hw, cell_px=c.cell_px, max_tracks=c.max_tracks, fb_px=c.track_fb_px,
+                          epi_px=c.track_epi_px)
+
     def _restart(self, k: int) -> None:
-        self.tracks = TrackTable(self.size_hw, cell_px=self.cfg.cell_px, max_tracks=self.cfg.max_tracks,
-                                 fb_px=self.cfg.track_fb_px, epi_px=self.cfg.track_epi_px)
+        self.tracks = self._new_tracks()
         self.tracks.newest = k
         self.keyframes = [k]
 
@@ -166,17 +169,10 @@ class WindowBackend:
         c = self.cfg
         fixed = set(window[:n_fixed])
         poses = {k: self.poses[k] for k in window}
-        priors = None
-        if c.prior_trans > 0:
-            steps = [np.linalg.norm(poses[b][:3, 3] - poses[a][:3, 3]) for a, b in zip(window[:-1], window[1:])]
-            st = max(float(np.median(steps)), 1e-9)
-            sig = np.array([np.radians(c.prior_rot_deg)] * 3 + [c.prior_trans * st] * 3)
-            priors = {k: sig for k in window[n_fixed:-1]}  # all but the held and the newest
         sol, ok = solve_window(self.K, poses, fixed, self.tracks.obs, self.tracks.landmarks, huber_px=c.huber_px,
                                max_iterations=c.max_iterations, min_points=c.min_points,
                                steps=self.steps if c.step_factors else None,
-                               step_rot_sigma=np.radians(c.step_rot_deg), step_trans_sigma=c.step_trans,
-                               priors=priors)
+                               step_rot_sigma=np.radians(c.step_rot_deg), step_trans_sigma=c.step_trans)
         self.stats["solves"] += 1
         newest = window[-1]
         if not ok:

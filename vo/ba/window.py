@@ -107,8 +107,7 @@ def solve_window(K: np.ndarray, poses: dict[int, np.ndarray], fixed: set[int],
                  obs: dict[int, tuple[np.ndarray, np.ndarray]], landmarks: dict[int, np.ndarray],
                  huber_px: float = 1.0, max_iterations: int = 10, min_points: int = 20,
                  steps: dict[int, tuple[int, np.ndarray]] | None = None, step_rot_sigma: float = 1e-3,
-                 step_trans_sigma: float = 0.02, priors: dict[int, np.ndarray] | None = None
-                 ) -> tuple[WindowSolution | None, bool]:
+                 step_trans_sigma: float = 0.02) -> tuple[WindowSolution | None, bool]:
     """Bundle-adjust the keyframes ``poses`` (those in ``fixed`` held) and the tracks' points.
 
     Args:
@@ -122,7 +121,6 @@ def solve_window(K: np.ndarray, poses: dict[int, np.ndarray], fixed: set[int],
         min_points: fewer usable points gives ``valid = False`` (nothing solved).
         steps: keyframe -> (its reference keyframe, measured ``T_ref_k``): relative-pose factors
             with sigmas ``step_rot_sigma`` (radians) and ``step_trans_sigma`` x the step length.
-        priors: keyframe -> ``(6,)`` sigmas (rotation rad, translation) of a prior at its pose.
 
     Returns:
         ``(WindowSolution, True)``, or ``(None, False)`` when there is too little to solve
@@ -153,10 +151,6 @@ def solve_window(K: np.ndarray, poses: dict[int, np.ndarray], fixed: set[int],
         values.insert(L(t), np.asarray(landmarks[t], dtype=np.float64))
     for k, t, p in zip(kf.tolist(), tid.tolist(), uv):
         graph.add(gtsam.GenericProjectionFactorCal3_S2(p, noise, X(k), L(t), cal))
-    for k, sig in (priors or {}).items():  # soft priors: what earlier windows made of these keyframes
-        if k in poses and k not in fixed:
-            graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(np.asarray(poses[k], dtype=np.float64)),
-                                             gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sig, dtype=np.float64))))
     for k, (ref, T_ref_k) in (steps or {}).items():
         if k in poses and ref in poses:
             tn = float(np.linalg.norm(T_ref_k[:3, 3]))

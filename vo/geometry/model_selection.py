@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from trianflow_vo.geometry.se3 import rodrigues
+from trianflow_vo.geometry.relative_pose import _perturb_pose, _signed_sampson, _tangent_basis
 
 R_DATA = 4  # two image points per match
 
@@ -96,15 +96,6 @@ def select_motion_model(sampson_px: np.ndarray, rotation_px: np.ndarray, floor_p
     return MotionTest(bool(g_e < g_r), g_e, g_r, sigma)
 
 
-def _sampson_normalised(R, t, x1n, x2n, f):
-    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ R
-    Ex1 = x1n @ E.T
-    Etx2 = x2n @ E
-    num = (x2n * Ex1).sum(1)
-    den = Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2 + 1e-18
-    return f * num / np.sqrt(den)
-
-
 def direction_sigma(R: np.ndarray, t: np.ndarray, pts1: np.ndarray, pts2: np.ndarray, K: np.ndarray,
                     sigma_px: float, n_independent: int | None = None) -> tuple[float, bool]:
     """Standard deviation (radians) of the translation direction of a relative pose.
@@ -134,18 +125,14 @@ def direction_sigma(R: np.ndarray, t: np.ndarray, pts1: np.ndarray, pts2: np.nda
     x1n = np.concatenate([pts1, np.ones((n, 1))], 1) @ Kinv.T
     x2n = np.concatenate([pts2, np.ones((n, 1))], 1) @ Kinv.T
     f = float(np.sqrt(K[0, 0] * K[1, 1]))
-    a = np.array([1.0, 0.0, 0.0]) if abs(t[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    b1 = np.cross(t, a)
-    b1 /= np.linalg.norm(b1)
-    B = np.stack([b1, np.cross(t, b1)], 1)
-    r0 = _sampson_normalised(R, t, x1n, x2n, f)
+    B = _tangent_basis(t)  # the parametrisation of refine_pose_sampson: its Jacobian, at the solution
+    r0 = _signed_sampson(R, t, x1n, x2n, f)
     eps = 1e-6
     J = np.empty((n, 5))
     for k in range(5):
         dx = np.zeros(5)
         dx[k] = eps
-        tk = t + B @ dx[3:]
-        J[:, k] = (_sampson_normalised(rodrigues(dx[:3]) @ R, tk / np.linalg.norm(tk), x1n, x2n, f) - r0) / eps
+        J[:, k] = (_signed_sampson(*_perturb_pose(R, t, B, dx), x1n, x2n, f) - r0) / eps
     info = J.T @ J
     if n_independent is not None and n_independent < n:
         info *= n_independent / n

@@ -72,6 +72,21 @@ def _signed_sampson(R, t, x1n, x2n, f):
     return f * num / np.sqrt(den)
 
 
+def _tangent_basis(t):
+    """``(3, 2)`` orthonormal basis of the tangent plane of the unit sphere at the direction ``t``."""
+    a = np.array([1.0, 0.0, 0.0]) if abs(t[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    b1 = np.cross(t, a)
+    b1 /= np.linalg.norm(b1)
+    return np.stack([b1, np.cross(t, b1)], 1)
+
+
+def _perturb_pose(R, t, B, dx):
+    """``(R, t)`` moved by ``dx`` ``(5,)``: a rotation vector (3) and a step of the direction in basis ``B`` (2)."""
+    Rn = rodrigues(dx[:3]) @ R
+    tn = t + B @ dx[3:]
+    return Rn, tn / np.linalg.norm(tn)
+
+
 def _robust_cost(r, scale):
     # truncated Cauchy: constant beyond 3 scales
     return np.sum(np.log1p(np.minimum(np.abs(r) / scale, 3.0) ** 2))
@@ -105,19 +120,7 @@ def refine_pose_sampson(
     if near.sum() >= 8:
         x1n, x2n = x1n[near], x2n[near]
     eps = 1e-6
-
-    def basis(tv):
-        a = np.array([1.0, 0.0, 0.0]) if abs(tv[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-        b1 = np.cross(tv, a)
-        b1 /= np.linalg.norm(b1)
-        b2 = np.cross(tv, b1)
-        return np.stack([b1, b2], 1)
-
-    def apply(R, t, B, dx):
-        Rn = rodrigues(dx[:3]) @ R
-        tn = t + B @ dx[3:]
-        return Rn, tn / np.linalg.norm(tn)
-
+    basis, apply = _tangent_basis, _perturb_pose
     r = _signed_sampson(R, t, x1n, x2n, f)
     lam = 1e-3
     for _ in range(iters):
