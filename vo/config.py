@@ -238,7 +238,7 @@ class KeyframeConfig(_Section):
     max_direction_deg: float = _opt(0.5, "policy gric: largest standard deviation of the translation direction "
                                          "(degrees) for a two-view step; above it PnP on the keyframe's depth",
                                     range=_Range(0.0, lo_open=True))
-    max_flow_fraction: float = _opt(0.05, "policy gric: a PnP / rotation-only frame whose mean flow against the "
+    max_flow_fraction: float = _opt(0.1, "policy gric: a PnP / rotation-only frame whose mean flow against the "
                                           "held keyframe exceeds this fraction of the image width becomes the "
                                           "keyframe (its depth moved by the solved pose)",
                                     range=_Range(0.0, lo_open=True))
