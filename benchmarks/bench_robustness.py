@@ -49,6 +49,7 @@ import math
 import os
 import platform
 import shlex
+import statistics
 import subprocess
 import sys
 import resource
@@ -302,11 +303,8 @@ def evaluate_run(run_dir: Path, gt_path: Path, kind: str) -> dict:
 
 
 def _median(xs):
-    xs = sorted(x for x in xs if x is not None)
-    if not xs:
-        return None
-    n = len(xs)
-    return xs[n // 2] if n % 2 else 0.5 * (xs[n // 2 - 1] + xs[n // 2])
+    xs = [x for x in xs if x is not None]
+    return statistics.median(xs) if xs else None
 
 
 def aggregate(case: dict, runs: list[dict]) -> dict:

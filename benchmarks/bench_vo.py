@@ -27,6 +27,7 @@ import json
 import os
 import platform
 import resource
+import statistics
 import subprocess
 import sys
 import time
@@ -130,11 +131,8 @@ def run_job(job: dict) -> dict:
 
 
 def _median(xs):
-    xs = sorted(x for x in xs if x is not None)
-    if not xs:
-        return None
-    n = len(xs)
-    return xs[n // 2] if n % 2 else 0.5 * (xs[n // 2 - 1] + xs[n // 2])
+    xs = [x for x in xs if x is not None]
+    return statistics.median(xs) if xs else None
 
 
 def aggregate(runs: list[dict]) -> dict:
