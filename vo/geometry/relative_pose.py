@@ -120,16 +120,15 @@ def refine_pose_sampson(
     if near.sum() >= 8:
         x1n, x2n = x1n[near], x2n[near]
     eps = 1e-6
-    basis, apply = _tangent_basis, _perturb_pose
     r = _signed_sampson(R, t, x1n, x2n, f)
     lam = 1e-3
     for _ in range(iters):
-        B = basis(t)
+        B = _tangent_basis(t)
         J = np.empty((len(r), 5))
         for k in range(5):
             dx = np.zeros(5)
             dx[k] = eps
-            Rk, tk = apply(R, t, B, dx)
+            Rk, tk = _perturb_pose(R, t, B, dx)
             J[:, k] = (_signed_sampson(Rk, tk, x1n, x2n, f) - r) / eps
         # Cauchy IRLS weights, zero beyond 3 scales (gross outliers have no say)
         w = (np.abs(r) < 3.0 * scale_px) / (1.0 + (r / scale_px) ** 2)
@@ -143,7 +142,7 @@ def refine_pose_sampson(
                 dx = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), g)
             except np.linalg.LinAlgError:
                 return (R0, t0), False
-            Rn, tn = apply(R, t, B, dx)
+            Rn, tn = _perturb_pose(R, t, B, dx)
             rn = _signed_sampson(Rn, tn, x1n, x2n, f)
             cost_n = _robust_cost(rn, scale_px)
             if np.isfinite(cost_n) and cost_n <= cost:
