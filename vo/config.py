@@ -280,6 +280,9 @@ class BackendConfig(_Section):
     step_rot_deg: float = _opt(0.05, "sigma of a step factor's rotation, degrees", range=_Range(0.0, lo_open=True))
     step_trans: float = _opt(0.02, "sigma of a step factor's translation, as a fraction of the step length",
                              range=_Range(0.0, lo_open=True))
+    step_trans_pnp: float = _opt(1.0, "sigma of the translation of a step solved by PnP or rotation only (a "
+                                      "handed-on keyframe), as a fraction of the window's median two-view step "
+                                      "(or of its own length when larger)", range=_Range(0.0, lo_open=True))
     rescale_depth: bool = _opt(False, "rescale the new keyframe's carried depth to the adjusted points' depths "
                                       "(measured worse on KITTI and 7-Scenes: off)")
     max_shift: float = _opt(0.5, "an adjustment moving a keyframe by more than this many keyframe steps is "

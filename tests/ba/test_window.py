@@ -111,3 +111,22 @@ def test_step_factors_pull_towards_the_measured_steps():
     e_free = np.linalg.norm(free.poses[7][:3, 3] - poses[7][:3, 3])
     e_tied = np.linalg.norm(tied.poses[7][:3, 3] - poses[7][:3, 3])
     assert e_tied < e_free
+
+
+def test_a_step_s_own_translation_sigma_is_honoured():
+    """A third element in a step is its translation sigma (trajectory units): a wrong step given a
+    tight sigma drags the keyframe, the same step given a loose one is left to the reprojections."""
+    P, poses, obs, rng = _scene(seed=3, noise=0.3)
+    lm = {j: P[j] for j in range(len(P))}
+    steps = {i: (i - 1, np.linalg.inv(poses[i - 1]) @ poses[i]) for i in range(1, 8)}
+    wrong = steps[7][1].copy()
+    wrong[:3, 3] = (0.5, 0.0, 0.5)  # 45 degrees off and 0.2 m short of the true 0.9 m step ahead
+    tight = {**steps, 7: (6, wrong, 1e-4)}
+    loose = {**steps, 7: (6, wrong, 10.0)}
+    kw = dict(step_rot_sigma=1e-3, step_trans_sigma=1e-2, max_iterations=20)
+    sol_t, ok_t = solve_window(K, poses, {0, 1}, obs, lm, steps=tight, **kw)
+    sol_l, ok_l = solve_window(K, poses, {0, 1}, obs, lm, steps=loose, **kw)
+    assert ok_t and ok_l
+    e_tight = np.linalg.norm(sol_t.poses[7][:3, 3] - poses[7][:3, 3])
+    e_loose = np.linalg.norm(sol_l.poses[7][:3, 3] - poses[7][:3, 3])
+    assert e_tight > 0.1 and e_loose < 0.02, (e_tight, e_loose)

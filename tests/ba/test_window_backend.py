@@ -108,3 +108,23 @@ def test_revision_depth_scale_rescales_the_keyframes_carried_depth():
     np.testing.assert_allclose(odo.keyframe.T_world_cam, T)
     with pytest.raises(ValueError):
         PoseRevision({7: T}, depth_scale={7: -1.0})
+
+
+def test_pnp_steps_get_their_own_translation_sigma():
+    """Two-view steps: ``step_trans`` x their length; PnP / rotation-only steps (handed-on
+    keyframes): ``step_trans_pnp`` x the larger of their length and the median two-view step."""
+    cfg = BackendConfig(step_trans=0.02, step_trans_pnp=0.5)
+    be = WindowBackend(cfg, np.eye(3), (64, 64))
+
+    def step(t):
+        T = np.eye(4)
+        T[:3, 3] = t
+        return T
+
+    be.steps = {1: (0, step((0, 0, 1.0)), True), 2: (1, step((0, 0, 3.0)), True), 3: (2, step((0, 0, 0.1)), False),
+                4: (3, step((0, 0, 0.0)), False), 5: (4, step((0, 0, 4.0)), False)}
+    sig = {k: v[2] for k, v in be._step_factors().items()}
+    assert sig[1] == pytest.approx(0.02) and sig[2] == pytest.approx(0.06)
+    assert sig[3] == pytest.approx(0.5 * 2.0)  # median two-view step 2.0 > its own 0.1
+    assert sig[4] == pytest.approx(0.5 * 2.0)  # a rotation-only hand-on: no translation measured
+    assert sig[5] == pytest.approx(0.5 * 4.0)

@@ -33,7 +33,7 @@ from trianflow_vo.backend import PoseRevision
 from trianflow_vo.ba.tracks import TrackTable
 from trianflow_vo.ba.window import solve_window
 from trianflow_vo.config import BackendConfig
-from trianflow_vo.frame import FrameResult
+from trianflow_vo.frame import Branch, FrameResult
 from trianflow_vo.geometry.fundamental import fundamental_from_pose
 from trianflow_vo.geometry.se3 import invert_T, rotation_angle
 from trianflow_vo.keyframe import Keyframe
@@ -74,7 +74,8 @@ class WindowBackend:
         self.tracks = self._new_tracks()
         self.keyframes: list[int] = []  # window order, oldest first (all keyframes seen, trimmed)
         self.poses: dict[int, np.ndarray] = {}  # keyframe -> current T_world_cam
-        self.steps: dict[int, tuple[int, np.ndarray]] = {}  # keyframe -> (its reference, front-end T_ref_cam)
+        # keyframe -> (its reference, front-end T_ref_cam, solved by two-view geometry)
+        self.steps: dict[int, tuple[int, np.ndarray, bool]] = {}
         self.stats = {"solves": 0, "failures": 0, "rejected": 0, "skipped": 0, "revisions": 0, "tracks_ended": 0,
                       "track_resets": 0, "depth_rescales": 0}
         self._ms: list[float] = []
@@ -103,7 +104,8 @@ class WindowBackend:
         if cand_ref is None or cand_world is None or cand_world.shape[0] != cand_ref.shape[0]:
             cand_ref = cand_cur = np.zeros((0, 2))
             cand_world = np.zeros((0, 3))
-        self.steps[k] = (int(result.ref_index), np.array(result.T_ref_cam, dtype=np.float64))
+        self.steps[k] = (int(result.ref_index), np.array(result.T_ref_cam, dtype=np.float64),
+                         result.branch == Branch.TWO_VIEW)
         self.tracks.advance(int(result.ref_index), k, np.asarray(view.flow), np.asarray(view.flow_bw), F,
                             cand_ref, cand_cur, cand_world)
         self.keyframes.append(k)
@@ -171,7 +173,7 @@ class WindowBackend:
         poses = {k: self.poses[k] for k in window}
         sol, ok = solve_window(self.K, poses, fixed, self.tracks.obs, self.tracks.landmarks, huber_px=c.huber_px,
                                max_iterations=c.max_iterations, min_points=c.min_points,
-                               steps=self.steps if c.step_factors else None,
+                               steps=self._step_factors() if c.step_factors else None,
                                step_rot_sigma=np.radians(c.step_rot_deg), step_trans_sigma=c.step_trans)
         self.stats["solves"] += 1
         newest = window[-1]
@@ -198,6 +200,18 @@ class WindowBackend:
         self.stats["revisions"] += 1
         scale = self._depth_scale(keyframe, sol.poses[newest], good) if c.rescale_depth else None
         return revised, ({newest: scale} if scale is not None else {})
+
+    def _step_factors(self) -> dict[int, tuple[int, np.ndarray, float]]:
+        """The window's steps with their translation sigmas: a two-view step ``step_trans`` x its
+        length; a PnP / rotation-only step (a handed-on keyframe, whose translation direction
+        is poorly determined) ``step_trans_pnp`` x the larger of its length and the median
+        two-view step of the window."""
+        c = self.cfg
+        lengths = {k: float(np.linalg.norm(T[:3, 3])) for k, (_, T, _) in self.steps.items()}
+        two_view = [lengths[k] for k, (_, _, tv) in self.steps.items() if tv]
+        typical = float(np.median(two_view)) if two_view else 0.0
+        return {k: (ref, T, c.step_trans * lengths[k] if tv else c.step_trans_pnp * max(lengths[k], typical))
+                for k, (ref, T, tv) in self.steps.items()}
 
     def _implausible(self, before: dict, after: dict, window: list[int]) -> str:
         steps = [np.linalg.norm(before[b][:3, 3] - before[a][:3, 3]) for a, b in zip(window[:-1], window[1:])]

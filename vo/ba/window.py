@@ -106,7 +106,7 @@ def reprojection_errors(K: np.ndarray, poses: dict[int, np.ndarray], landmarks: 
 def solve_window(K: np.ndarray, poses: dict[int, np.ndarray], fixed: set[int],
                  obs: dict[int, tuple[np.ndarray, np.ndarray]], landmarks: dict[int, np.ndarray],
                  huber_px: float = 1.0, max_iterations: int = 10, min_points: int = 20,
-                 steps: dict[int, tuple[int, np.ndarray]] | None = None, step_rot_sigma: float = 1e-3,
+                 steps: dict[int, tuple] | None = None, step_rot_sigma: float = 1e-3,
                  step_trans_sigma: float = 0.02) -> tuple[WindowSolution | None, bool]:
     """Bundle-adjust the keyframes ``poses`` (those in ``fixed`` held) and the tracks' points.
 
@@ -119,8 +119,9 @@ def solve_window(K: np.ndarray, poses: dict[int, np.ndarray], fixed: set[int],
         huber_px: Huber threshold in pixels (noise sigma 1 px).
         max_iterations: Levenberg-Marquardt iterations at most.
         min_points: fewer usable points gives ``valid = False`` (nothing solved).
-        steps: keyframe -> (its reference keyframe, measured ``T_ref_k``): relative-pose factors
-            with sigmas ``step_rot_sigma`` (radians) and ``step_trans_sigma`` x the step length.
+        steps: keyframe -> (its reference keyframe, measured ``T_ref_k``[, translation sigma]):
+            relative-pose factors with sigmas ``step_rot_sigma`` (radians) and the step's own
+            translation sigma (trajectory units) or, without one, ``step_trans_sigma`` x the step length.
 
     Returns:
         ``(WindowSolution, True)``, or ``(None, False)`` when there is too little to solve
@@ -151,10 +152,12 @@ def solve_window(K: np.ndarray, poses: dict[int, np.ndarray], fixed: set[int],
         values.insert(L(t), np.asarray(landmarks[t], dtype=np.float64))
     for k, t, p in zip(kf.tolist(), tid.tolist(), uv):
         graph.add(gtsam.GenericProjectionFactorCal3_S2(p, noise, X(k), L(t), cal))
-    for k, (ref, T_ref_k) in (steps or {}).items():
+    for k, step in (steps or {}).items():
+        ref, T_ref_k = step[0], step[1]
         if k in poses and ref in poses:
             tn = float(np.linalg.norm(T_ref_k[:3, 3]))
-            sig = np.array([step_rot_sigma] * 3 + [max(step_trans_sigma * tn, 1e-6)] * 3)
+            t_sigma = float(step[2]) if len(step) > 2 else step_trans_sigma * tn
+            sig = np.array([step_rot_sigma] * 3 + [max(t_sigma, 1e-6)] * 3)
             graph.add(gtsam.BetweenFactorPose3(X(ref), X(k), gtsam.Pose3(np.asarray(T_ref_k, dtype=np.float64)),
                                                gtsam.noiseModel.Diagonal.Sigmas(sig)))
     params = gtsam.LevenbergMarquardtParams()
