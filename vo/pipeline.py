@@ -37,7 +37,7 @@ from trianflow_vo.io.run_writer import RunClock, RunWriter, write_failed_status
 from trianflow_vo.io.sequence import Prefetcher, open_sequence
 from trianflow_vo.observer import Observer
 from trianflow_vo.odometry import Odometry
-from trianflow_vo.runlog import RunLog
+from trianflow_vo.runlog import OverruleWatch, RunLog
 from trianflow_vo.timing import StageTimer
 
 log = logging.getLogger("trianflow_vo.pipeline")
@@ -164,6 +164,7 @@ def _run(seq: Path, out_dir: Path, config: Config, observers: list[Observer], od
     extra: list[Observer] = list(observers)
     all_obs: list[Observer] = []
     trajectory = Trajectory()
+    watch = OverruleWatch()
     interrupted, error, signame = False, None, None
     try:
         writer = RunWriter(out_dir, info, runlog, clock=clock)
@@ -194,6 +195,9 @@ def _run(seq: Path, out_dir: Path, config: Config, observers: list[Observer], od
                 result = _step(odo, item, (h, w), t_prev)
                 t_prev = time.perf_counter()
                 _report(result, runlog)
+                contradicted = watch.update(result)
+                if contradicted:
+                    runlog.warn("depth-contradicted", contradicted, frame=result.frame_index)
                 trajectory.add(result)
                 clock.frame_done()
                 for ob in all_obs:

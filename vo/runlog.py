@@ -4,7 +4,7 @@ Messages go to the standard :mod:`logging` logger ``trianflow_vo`` (the CLI sets
 its level with ``-v``/``-q``). Routine behaviour (a PnP step on small parallax, a
 held keyframe, a static camera) is logged at INFO. A warning names its kind
 (``skipped-frame``, ``rotation-only``, ``failed-frame``, ``scale-fallback``,
-``backend-failed``, ``backend-rejected``, ``observer``, ``plot``); per-frame kinds are logged at INFO as they happen and
+``backend-failed``, ``backend-rejected``, ``depth-contradicted``, ``observer``, ``plot``); per-frame kinds are logged at INFO as they happen and
 summarised once per kind at the end (WARNING), while a skipped frame is a
 WARNING at once, naming its file. Every warning is kept, with its count, for
 ``run.json``.
@@ -21,7 +21,9 @@ PER_FRAME_KINDS = {"rotation-only": "frames solved by rotation only",
                    "failed-frame": "frames failed (pose kept from the previous frame)",
                    "scale-fallback": "frames with a fallback scale (constant speed)",
                    "backend-failed": "keyframes whose bundle adjustment failed (front-end poses kept)",
-                   "backend-rejected": "keyframes whose bundle adjustment was rejected as implausible"}
+                   "backend-rejected": "keyframes whose bundle adjustment was rejected as implausible",
+                   "depth-contradicted": "keyframes whose carried depth PnP trusted against many two-view steps "
+                                         "in a row"}
 
 
 class RunLog:
@@ -56,3 +58,48 @@ class RunLog:
     def to_dict(self) -> dict:
         """``{kind: {"count": n, "items": [{"frame", "message"}, ...]}}`` for ``run.json``."""
         return {k: {"count": len(v), "items": list(v)} for k, v in self.groups.items()}
+
+
+class OverruleWatch:
+    """Notices a keyframe whose carried depth keeps contradicting the two-view geometry.
+
+    A two-view step whose length PnP on the keyframe's depth contradicts (the
+    ``scale.pnp_check_ratio`` guard) is replaced by the PnP pose: a frame of branch
+    ``pnp`` with a ``pnp_ratio``. A few in a row are routine on short indoor
+    baselines (at most 5 on the shared clips with the default settings); many in a
+    row mean the depth itself has probably gone wrong (seen: 34 frames at 2-19 px of
+    parallax, PnP saying 0.03-0.3x the two-view length, after which the scale
+    collapsed), and every pose solved from it is suspect. ``update`` returns a
+    warning once per keyframe when its streak reaches ``min_streak``.
+    """
+
+    def __init__(self, min_streak: int = 10):
+        if min_streak < 1:
+            raise ValueError(f"min_streak must be >= 1, got {min_streak}")
+        self.min_streak = int(min_streak)
+        self._ref: int | None = None
+        self._first: int | None = None
+        self._ratios: list[float] = []
+        self._warned: set[int] = set()
+
+    def update(self, result) -> str | None:
+        """Feed one :class:`~trianflow_vo.frame.FrameResult`; the warning text when a streak reaches the limit."""
+        from trianflow_vo.frame import Branch
+
+        ratio = result.stats.pnp_ratio
+        overruled = result.branch is Branch.PNP and ratio is not None
+        if result.branch is Branch.TWO_VIEW or result.ref_index != self._ref:
+            self._ref, self._first, self._ratios = result.ref_index, None, []
+        if not overruled:
+            return None
+        if self._first is None:
+            self._first = result.frame_index
+        self._ratios.append(float(ratio))
+        if len(self._ratios) < self.min_streak or self._ref in self._warned:
+            return None
+        self._warned.add(self._ref)
+        return (f"frames {self._first}-{result.frame_index}: PnP on keyframe {self._ref}'s depth overruled "
+                f"{len(self._ratios)} two-view steps in a row (PnP / two-view step length "
+                f"{min(self._ratios):.2f}-{max(self._ratios):.2f}x); the keyframe's carried depth has probably "
+                "gone wrong and the poses solved from it are suspect")
+
