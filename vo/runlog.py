@@ -4,15 +4,17 @@ Messages go to the standard :mod:`logging` logger ``trianflow_vo`` (the CLI sets
 its level with ``-v``/``-q``). Routine behaviour (a PnP step on small parallax, a
 held keyframe, a static camera) is logged at INFO. A warning names its kind
 (``skipped-frame``, ``rotation-only``, ``failed-frame``, ``scale-fallback``,
-``backend-failed``, ``backend-rejected``, ``depth-contradicted``, ``observer``, ``plot``); per-frame kinds are logged at INFO as they happen and
-summarised once per kind at the end (WARNING), while a skipped frame is a
-WARNING at once, naming its file. Every warning is kept, with its count, for
-``run.json``.
+``backend-failed``, ``backend-rejected``, ``depth-contradicted``, ``observer``,
+``plot``); per-frame kinds are logged at INFO as they happen and summarised once
+per kind at the end (WARNING), while a skipped frame is a WARNING at once, naming
+its file. Every warning is kept, with its count, for ``run.json``.
 """
 
 from __future__ import annotations
 
 import logging
+
+from trianflow_vo.frame import Branch
 
 log = logging.getLogger("trianflow_vo")
 
@@ -84,8 +86,6 @@ class OverruleWatch:
 
     def update(self, result) -> str | None:
         """Feed one :class:`~trianflow_vo.frame.FrameResult`; the warning text when a streak reaches the limit."""
-        from trianflow_vo.frame import Branch
-
         ratio = result.stats.pnp_ratio
         overruled = result.branch is Branch.PNP and ratio is not None
         if result.branch is Branch.TWO_VIEW or result.ref_index != self._ref:
