@@ -82,7 +82,6 @@ class OverruleWatch:
         self._ref: int | None = None
         self._first: int | None = None
         self._ratios: list[float] = []
-        self._warned: set[int] = set()
 
     def update(self, result) -> str | None:
         """Feed one :class:`~trianflow_vo.frame.FrameResult`; the warning text when a streak reaches the limit."""
@@ -95,9 +94,8 @@ class OverruleWatch:
         if self._first is None:
             self._first = result.frame_index
         self._ratios.append(float(ratio))
-        if len(self._ratios) < self.min_streak or self._ref in self._warned:
+        if len(self._ratios) != self.min_streak:  # once per streak; a streak belongs to one keyframe
             return None
-        self._warned.add(self._ref)
         return (f"frames {self._first}-{result.frame_index}: PnP on keyframe {self._ref}'s depth overruled "
                 f"{len(self._ratios)} two-view steps in a row (PnP / two-view step length "
                 f"{min(self._ratios):.2f}-{max(self._ratios):.2f}x); the keyframe's carried depth has probably "
