@@ -78,6 +78,11 @@ class Backend(Protocol):
     def describe(self) -> dict:
         ...
 
+    def close(self) -> None:
+        """Release what it holds (a worker process); called once at the end of every run, also a failed
+        one. Optional: the pipeline skips a back-end without it."""
+        ...
+
 
 class NoBackend:
     """The default back-end: keeps the front-end's poses as they are."""
@@ -92,6 +97,9 @@ class NoBackend:
 
     def describe(self) -> dict:
         return {"name": self.name}
+
+    def close(self) -> None:
+        pass
 
 
 def make_backend(config: BackendConfig, K: np.ndarray | None = None, size_hw: tuple[int, int] | None = None,

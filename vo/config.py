@@ -285,6 +285,9 @@ class BackendConfig(_Section):
                                       "(or of its own length when larger)", range=_Range(0.0, lo_open=True))
     rescale_depth: bool = _opt(False, "rescale the new keyframe's carried depth to the adjusted points' depths "
                                       "(measured worse on KITTI and 7-Scenes: off)")
+    concurrent: bool = _opt(True, "adjust each window in a worker process while the next frames are solved; "
+                                  "the revision is applied at the next keyframe (the same final poses, less time "
+                                  "per frame); not with rescale_depth, which needs the blocking order")
     max_shift: float = _opt(0.5, "an adjustment moving a keyframe by more than this many keyframe steps is "
                                  "rejected", range=_Range(0.0, lo_open=True))
     max_rotation_deg: float = _opt(3.0, "an adjustment rotating a keyframe by more than this (degrees) is rejected",

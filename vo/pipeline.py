@@ -219,6 +219,7 @@ def _run(seq: Path, out_dir: Path, config: Config, observers: list[Observer], od
     finally:
         with signals.deferred():  # a second Ctrl-C must not lose the final status
             try:
+                _close(backend, runlog)
                 info["backend"] = backend.describe()  # its counts and time, in the final run.json
                 _finish(writer, extra, trajectory, gt, config, out_dir, seq, runlog, info, interrupted, error,
                         signame)
@@ -343,6 +344,17 @@ def _report(result: FrameResult, runlog: RunLog) -> None:
         runlog.warn("scale-fallback", what, frame=result.frame_index)
     elif result.branch is not Branch.TWO_VIEW and result.branch is not Branch.INIT:
         runlog.info(what)
+
+
+def _close(backend, runlog: RunLog) -> None:
+    """Let the back-end release its worker; a failure there is logged, never lost outputs."""
+    close = getattr(backend, "close", None)
+    if close is None:
+        return
+    try:
+        close()
+    except Exception as exc:
+        runlog.warn("backend-close", f"the back-end did not close cleanly: {exc}")
 
 
 def _revise(revision, trajectory: Trajectory, odo, observers: list[Observer]) -> None:

@@ -47,11 +47,11 @@ def test_window_0_is_the_pure_two_view_pipeline(drive, tmp_path):
     np.testing.assert_array_equal(p0, pn)
 
 
-def test_a_failing_adjustment_keeps_the_front_end_poses_and_the_run_goes_on(drive, tmp_path, monkeypatch):
-    import trianflow_vo.ba.backend as ba_backend
-
-    monkeypatch.setattr(ba_backend, "solve_window", lambda *a, **k: (None, False))
-    doc, poses = _run(drive, tmp_path / "fail", "backend.window=5")
+@pytest.mark.parametrize("concurrent", ["true", "false"])
+def test_a_failing_adjustment_keeps_the_front_end_poses_and_the_run_goes_on(drive, tmp_path, concurrent):
+    # more points asked for than any window has: every solve fails (in the worker process, or here)
+    doc, poses = _run(drive, tmp_path / "fail", "backend.window=5", "backend.min_points=100000",
+                      f"backend.concurrent={concurrent}")
     _, p0 = _run(drive, tmp_path / "w0", "backend.window=0")
     assert doc["status"] == "completed"
     assert doc["backend"]["failures"] == doc["backend"]["solves"] > 0
@@ -60,9 +60,9 @@ def test_a_failing_adjustment_keeps_the_front_end_poses_and_the_run_goes_on(driv
 
 
 def test_an_implausible_adjustment_is_rejected(drive, tmp_path, monkeypatch):
-    import trianflow_vo.ba.backend as ba_backend
+    import trianflow_vo.ba.worker as ba_worker
 
-    real = ba_backend.solve_window
+    real = ba_worker.solve_window
 
     def wild(*a, **k):
         sol, ok = real(*a, **k)
@@ -72,8 +72,8 @@ def test_an_implausible_adjustment_is_rejected(drive, tmp_path, monkeypatch):
                 sol.poses[kf][:3, 3] += 100.0  # far away
         return sol, ok
 
-    monkeypatch.setattr(ba_backend, "solve_window", wild)
-    doc, poses = _run(drive, tmp_path / "wild", "backend.window=5")
+    monkeypatch.setattr(ba_worker, "solve_window", wild)  # in this process: not concurrent
+    doc, poses = _run(drive, tmp_path / "wild", "backend.window=5", "backend.concurrent=false")
     assert doc["backend"]["rejected"] == doc["backend"]["solves"] > 0
     assert np.abs(poses[:, :, 3]).max() < 50
 

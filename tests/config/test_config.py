@@ -35,7 +35,7 @@ DEFAULTS = {
                 "huber_px": 1.0, "max_iterations": 5, "every": 2, "max_tracks": 250, "cell_px": 32,
                 "track_fb_px": 1.0, "track_epi_px": 1.0, "outlier_px": 3.0, "min_points": 30, "step_factors": True,
                 "step_rot_deg": 0.05, "step_trans": 0.02, "step_trans_pnp": 1.0, "rescale_depth": False,
-                "max_shift": 0.5, "max_rotation_deg": 3.0},
+                "concurrent": True, "max_shift": 0.5, "max_rotation_deg": 3.0},
     "output": {"gt": None, "plot": True, "rerun": None, "rerun_spawn": False},
     "runtime": {"threads": 2},
 }

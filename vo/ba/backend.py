@@ -15,6 +15,18 @@ On every new keyframe:
    the adjusted window (``depth_scale``): the median ratio of the adjusted points'
    depths to the front-end's depths at the same pixels.
 
+With ``backend.concurrent`` (the default) step 2 runs in a worker process
+(:mod:`~trianflow_vo.ba.worker`; GTSAM holds the interpreter lock, so a thread
+would not overlap) while the next frames are solved, and steps 2-3 end at the
+next keyframe (or at the end of the run): the revision then also carries the
+newer keyframe, chained from its revised reference, and the points that keyframe's
+step triangulated are moved with it. The front-end solves each frame relative to
+its keyframe, so the final poses are those of an adjustment that blocks (to the
+last printed digit); only the moment a revision reaches the outputs moves by one
+keyframe. The depth rescale needs the blocking order: with it, windows are
+adjusted here (``concurrent`` false in ``run.json``). If
+the worker process dies, the run says so and adjusts in its own process from then on.
+
 A solve that fails (too few points, indeterminate system, error not reduced) or
 that would move a keyframe implausibly far (more than ``max_shift`` keyframe steps
 or ``max_rotation_deg``) keeps the front-end poses, is logged and counted; the run
@@ -24,14 +36,17 @@ goes on.
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections.abc import Callable
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
 
 import numpy as np
 
 from trianflow_vo.backend import PoseRevision
 from trianflow_vo.ba.tracks import TrackTable
-from trianflow_vo.ba.window import solve_window
+from trianflow_vo.ba.worker import init_worker, solve_timed, warm_up
 from trianflow_vo.config import BackendConfig
 from trianflow_vo.frame import Branch, FrameResult
 from trianflow_vo.geometry.fundamental import fundamental_from_pose
@@ -39,6 +54,9 @@ from trianflow_vo.geometry.se3 import invert_T, rotation_angle
 from trianflow_vo.keyframe import Keyframe
 
 log = logging.getLogger("trianflow_vo.ba")
+
+# the worker process could not be started or has died
+_WORKER_ERRORS = (BrokenProcessPool, OSError)
 
 Warn = Callable[..., None]  # warn(kind, message, frame=index), as RunLog.warn
 
@@ -52,6 +70,41 @@ def _depth_at(tracks, size_hw: tuple[int, int], uv: np.ndarray) -> np.ndarray:
     xi = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, w - 1)
     yi = np.clip(np.rint(uv[:, 1]).astype(np.int64), 0, h - 1)
     return dmap[yi, xi].astype(np.float64)
+
+
+@dataclass(frozen=True)
+class _Outcome:
+    """A concluded adjustment: revised poses (empty when it failed or was rejected), depth scales,
+    the window's size and the solve's time (ms)."""
+
+    poses: dict
+    depth_scale: dict
+    n_keyframes: int
+    ms: float
+
+
+class _Job:
+    """One window adjustment: its inputs, and :func:`solve_window` run here or in the worker process."""
+
+    def __init__(self, window: list[int], fixed: set[int], poses: dict, keyframe: Keyframe, args: tuple,
+                 kwargs: dict):
+        self.window, self.fixed, self.poses, self.keyframe = window, fixed, poses, keyframe
+        self.args, self.kwargs = args, kwargs
+        self.solution: tuple = (None, False)
+        self.ms = 0.0
+        self.worker_rss_mb: float | None = None  # the worker process's peak memory so far
+        self.future = None
+
+    def run(self) -> None:
+        self.solution, self.ms, _ = solve_timed(self.args, self.kwargs)
+
+    def submit(self, pool) -> None:
+        self.future = pool.submit(solve_timed, self.args, self.kwargs)
+
+    def join(self) -> None:
+        """Wait for the worker's answer (raises what the worker raised, or BrokenProcessPool)."""
+        if self.future is not None:
+            self.solution, self.ms, self.worker_rss_mb = self.future.result()
 
 
 class WindowBackend:
@@ -83,62 +136,69 @@ class WindowBackend:
         self._factors: list[int] = []
         self._depth_scales: list[float] = []
         self._since = 0  # keyframes since the last adjustment
+        self._pending: _Job | None = None  # an adjustment running in the worker process
+        self._pool = None  # the worker process (started at the first keyframe)
+        self._worker_rss_mb: float | None = None
+        # the depth rescale must reach the newest keyframe before the next frame is solved: blocking
+        self._concurrent = bool(config.concurrent and not config.rescale_depth)
 
     # -- the Backend protocol ------------------------------------------------------------------------
     def add_keyframe(self, keyframe: Keyframe, result: FrameResult) -> PoseRevision | None:
         t0 = time.perf_counter()
         k = int(keyframe.index)
-        self.poses[k] = np.array(keyframe.T_world_cam, dtype=np.float64)
-        view = result.view
-        if result.ref_index is None or view is None or view.flow is None or view.flow_bw is None:
-            self._restart(k)  # the first frame (or a result without flow): tracks start at the next step
+        if self._concurrent and self._pool is None and not self.keyframes:
+            try:  # the first keyframe: the worker imports GTSAM while the next frames are solved
+                self._worker()
+            except _WORKER_ERRORS as exc:
+                self._worker_lost(k, exc)
+        # an adjustment started in a worker at an earlier keyframe ends here, before the tracks move on
+        done = self._collect()
+        revised = dict(done.poses) if done else {}
+        T_world_k = np.array(keyframe.T_world_cam, dtype=np.float64)
+        if revised and result.ref_index is not None and int(result.ref_index) in revised:
+            # the front-end chained it from its reference's pose before the revision
+            T_world_k = revised[int(result.ref_index)] @ np.asarray(result.T_ref_cam, dtype=np.float64)
+            revised[k] = T_world_k
+        self.poses[k] = T_world_k
+        # the step's triangulated points are in the world of the unrevised chain too
+        moved = T_world_k @ invert_T(np.asarray(keyframe.T_world_cam, dtype=np.float64)) if k in revised else None
+        now = self._advance(k, keyframe, result, moved)  # an adjustment solved here (not concurrent), or None
+        if done is None and now is None:
             return None
-        if result.ref_index != self.tracks.newest or result.ref_index not in self.poses:
-            self.stats["track_resets"] += 1
-            self._restart(int(result.ref_index))
-            self.poses.setdefault(int(result.ref_index), keyframe.T_world_cam @ invert_T(result.T_ref_cam))
-        T_cur_ref = invert_T(np.asarray(result.T_ref_cam, dtype=np.float64))
-        step = float(np.linalg.norm(T_cur_ref[:3, 3]))
-        F = fundamental_from_pose(T_cur_ref[:3, :3], T_cur_ref[:3, 3] / step, self.K) if step > 1e-12 else None
-        cand_ref, cand_cur, cand_world = view.pts_ref, view.pts_cur, view.points_world
-        if cand_ref is None or cand_world is None or cand_world.shape[0] != cand_ref.shape[0]:
-            cand_ref = cand_cur = np.zeros((0, 2))
-            cand_world = np.zeros((0, 3))
-        self.steps[k] = (int(result.ref_index), np.array(result.T_ref_cam, dtype=np.float64),
-                         result.branch == Branch.TWO_VIEW)
-        self.tracks.advance(int(result.ref_index), k, np.asarray(view.flow), np.asarray(view.flow_bw), F,
-                            cand_ref, cand_cur, cand_world)
-        self.keyframes.append(k)
-        window = self.keyframes[-self.cfg.window:]
-        self._trim(window)
-        n_fixed = min(self.cfg.fixed, len(window) - 2)
-        self._since += 1
-        if n_fixed < 1 or len(window) < 3 or self._since < self.cfg.every:
-            self.stats["skipped"] += 1
-            return None
-        self._since = 0
-        revision = self._solve(window, n_fixed, keyframe)
-        ms = (time.perf_counter() - t0) * 1000.0
+        ms = (time.perf_counter() - t0) * 1000.0 + (done.ms if done else 0.0)
         self._ms.append(ms)
-        if revision is None:
+        scales = {}
+        if now is not None:
+            revised.update(now.poses)
+            scales = now.depth_scale
+        if not revised:
             return None
-        return PoseRevision(revision[0], reason=f"window bundle adjustment of {len(window)} keyframes", ms=ms,
-                            depth_scale=revision[1])
+        n = (now or done).n_keyframes
+        return PoseRevision(revised, reason=f"window bundle adjustment of {n} keyframes", ms=ms, depth_scale=scales)
 
     def finish(self) -> PoseRevision | None:
-        return None
+        done = self._collect()
+        if done is None:
+            return None
+        self._ms.append(done.ms)
+        if not done.poses:
+            return None
+        return PoseRevision(done.poses, reason=f"window bundle adjustment of {done.n_keyframes} keyframes",
+                            ms=done.ms)
 
     def describe(self) -> dict:
         c = self.cfg
         med = (lambda v: float(np.median(v)) if v else None)
         return {
-            "name": self.name, "window": c.window, "fixed": c.fixed, "huber_px": c.huber_px,
-            "max_iterations": c.max_iterations, "every": c.every, "max_tracks": c.max_tracks, "cell_px": c.cell_px,
+            "name": self.name, "window": c.window, "fixed": c.fixed,
+            "concurrent": bool(c.concurrent and not c.rescale_depth),
+            "huber_px": c.huber_px, "max_iterations": c.max_iterations, "every": c.every, "max_tracks": c.max_tracks, "cell_px": c.cell_px,
             "track_fb_px": c.track_fb_px, "track_epi_px": c.track_epi_px, "outlier_px": c.outlier_px,
             **self.stats,
             "ms_total": float(np.sum(self._ms)) if self._ms else 0.0, "ms_median": med(self._ms),
             "points_median": med(self._points), "factors_median": med(self._factors),
             "depth_scale_median": med(self._depth_scales),
+            "worker_peak_rss_mb": self._worker_rss_mb,
         }
 
     # -- internals --------------------------------------------------------------------------------------
@@ -166,22 +226,115 @@ class WindowBackend:
         else:
             log.info(message)
 
-    def _solve(self, window: list[int], n_fixed: int, keyframe: Keyframe):
-        """Adjust ``window``; returns ``(revised poses, {newest: depth scale})`` or None."""
+    def _advance(self, k: int, keyframe: Keyframe, result: FrameResult,
+                 moved: np.ndarray | None = None) -> "_Outcome | None":
+        """Move the tracks into keyframe ``k`` (its pose already in ``self.poses``) and, when one
+        is due, start an adjustment: solved here (returns its outcome) or in a worker thread
+        (``backend.concurrent``; returns None, :meth:`_collect` ends it). ``moved`` ``(4, 4)``: the
+        world correction a revision of the reference applied, to apply to the step's points too."""
+        view = result.view
+        if result.ref_index is None or view is None or view.flow is None or view.flow_bw is None:
+            self._restart(k)  # the first frame (or a result without flow): tracks start at the next step
+            return None
+        if result.ref_index != self.tracks.newest or result.ref_index not in self.poses:
+            self.stats["track_resets"] += 1
+            self._restart(int(result.ref_index))
+            self.poses.setdefault(int(result.ref_index), self.poses[k] @ invert_T(result.T_ref_cam))
+        T_cur_ref = invert_T(np.asarray(result.T_ref_cam, dtype=np.float64))
+        step = float(np.linalg.norm(T_cur_ref[:3, 3]))
+        F = fundamental_from_pose(T_cur_ref[:3, :3], T_cur_ref[:3, 3] / step, self.K) if step > 1e-12 else None
+        cand_ref, cand_cur, cand_world = view.pts_ref, view.pts_cur, view.points_world
+        if cand_ref is None or cand_world is None or cand_world.shape[0] != cand_ref.shape[0]:
+            cand_ref = cand_cur = np.zeros((0, 2))
+            cand_world = np.zeros((0, 3))
+        elif moved is not None:
+            cand_world = np.asarray(cand_world, dtype=np.float64) @ moved[:3, :3].T + moved[:3, 3]
+        self.steps[k] = (int(result.ref_index), np.array(result.T_ref_cam, dtype=np.float64),
+                         result.branch == Branch.TWO_VIEW)
+        self.tracks.advance(int(result.ref_index), k, np.asarray(view.flow), np.asarray(view.flow_bw), F,
+                            cand_ref, cand_cur, cand_world)
+        self.keyframes.append(k)
+        window = self.keyframes[-self.cfg.window:]
+        self._trim(window)
+        n_fixed = min(self.cfg.fixed, len(window) - 2)
+        self._since += 1
+        if n_fixed < 1 or len(window) < 3 or self._since < self.cfg.every:
+            self.stats["skipped"] += 1
+            return None
+        self._since = 0
         c = self.cfg
         fixed = set(window[:n_fixed])
-        poses = {k: self.poses[k] for k in window}
-        sol, ok = solve_window(self.K, poses, fixed, self.tracks.obs, self.tracks.landmarks, huber_px=c.huber_px,
-                               max_iterations=c.max_iterations, min_points=c.min_points,
-                               steps=self._step_factors() if c.step_factors else None,
-                               step_rot_sigma=np.radians(c.step_rot_deg), step_trans_sigma=c.step_trans)
+        poses = {j: self.poses[j] for j in window}
+        seen = {t for j in window for t in self.tracks.obs.get(j, (np.zeros(0, np.int64),))[0].tolist()}
+        args = (self.K, poses, fixed, {j: self.tracks.obs[j] for j in window if j in self.tracks.obs},
+                {t: X for t, X in self.tracks.landmarks.items() if t in seen})
+        kwargs = dict(huber_px=c.huber_px, max_iterations=c.max_iterations, min_points=c.min_points,
+                      steps=self._step_factors() if c.step_factors else None,
+                      step_rot_sigma=np.radians(c.step_rot_deg), step_trans_sigma=c.step_trans)
+        job = _Job(window, fixed, poses, keyframe, args, kwargs)
+        if self._concurrent:
+            try:
+                job.submit(self._worker())
+                self._pending = job
+                return None
+            except _WORKER_ERRORS as exc:
+                self._worker_lost(window[-1], exc)
+        job.run()
+        return self._conclude(job)
+
+    def _worker(self):
+        """The worker process's pool (started on first use), or None when adjusting in this process."""
+        if self._pool is None:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            # spawn: the run has threads (frame prefetch, OpenCV) that a fork would copy mid-work
+            self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
+                                             initializer=init_worker, initargs=(os.getpid(),))
+            self._pool.submit(warm_up)
+        return self._pool
+
+    def close(self) -> None:
+        """Stop the worker process (an adjustment still running is abandoned)."""
+        self._pending = None
+        pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+    def _collect(self) -> "_Outcome | None":
+        """Wait for the adjustment running in the worker, if any, and conclude it."""
+        job, self._pending = self._pending, None
+        if job is None:
+            return None
+        try:
+            job.join()
+            self._worker_rss_mb = max(self._worker_rss_mb or 0.0, job.worker_rss_mb or 0.0) or None
+        except BrokenProcessPool as exc:
+            self._worker_lost(job.window[-1], exc)
+            job.run()
+        return self._conclude(job)
+
+    def _worker_lost(self, frame: int, exc: BaseException) -> None:
+        """The worker process could not start or died (killed, out of memory): say so, and adjust
+        here from now on."""
+        self._fail("backend-worker", f"keyframe {frame}: the bundle adjustment's worker process failed "
+                                     f"({exc or type(exc).__name__}); adjusting in this process from now on", frame)
+        self.close()
+        self._concurrent = False
+
+    def _conclude(self, job: "_Job") -> "_Outcome":
+        """Check a solved window and take it: revised poses, landmarks, outlier tracks ended."""
+        c = self.cfg
+        window, fixed, poses = job.window, job.fixed, job.poses
+        sol, ok = job.solution
         self.stats["solves"] += 1
         newest = window[-1]
+        nothing = _Outcome({}, {}, len(window), job.ms)
         if not ok:
             self.stats["failures"] += 1
             self._fail("backend-failed", f"keyframe {newest}: bundle adjustment failed (too few points or no "
                                          "convergence); front-end poses kept", newest)
-            return None
+            return nothing
         self._points.append(sol.n_points)
         self._factors.append(sol.n_factors)
         why = self._implausible(poses, sol.poses, window)
@@ -189,7 +342,7 @@ class WindowBackend:
             self.stats["rejected"] += 1
             self._fail("backend-rejected", f"keyframe {newest}: bundle adjustment rejected ({why}); front-end "
                                            "poses kept", newest)
-            return None
+            return nothing
         bad = [t for t, e in sol.residual_px.items() if e > c.outlier_px]
         good = {t: X for t, X in sol.landmarks.items() if sol.residual_px[t] <= c.outlier_px}
         self.tracks.landmarks.update(good)
@@ -198,8 +351,8 @@ class WindowBackend:
         revised = {k: T for k, T in sol.poses.items() if k not in fixed}
         self.poses.update(revised)
         self.stats["revisions"] += 1
-        scale = self._depth_scale(keyframe, sol.poses[newest], good) if c.rescale_depth else None
-        return revised, ({newest: scale} if scale is not None else {})
+        scale = self._depth_scale(job.keyframe, sol.poses[newest], good) if c.rescale_depth else None
+        return _Outcome(revised, {newest: scale} if scale is not None else {}, len(window), job.ms)
 
     def _step_factors(self) -> dict[int, tuple[int, np.ndarray, float]]:
         """The window's steps with their translation sigmas: a two-view step ``step_trans`` x its

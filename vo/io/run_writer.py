@@ -26,8 +26,6 @@ import errno
 import json
 import os
 import platform
-import resource
-import sys
 import time
 from pathlib import Path
 
@@ -39,6 +37,7 @@ from trianflow_vo.backend import RevisedPoses
 from trianflow_vo.frame import Branch, FrameResult
 from trianflow_vo.observer import Observer
 from trianflow_vo.runlog import RunLog
+from trianflow_vo.resources import peak_rss_mb
 
 FPS_DEFINITION = ("frames processed / wall time from the first frame read to the last frame done "
                   "(decoding included)")
@@ -55,23 +54,6 @@ def _fmt(v) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
     return str(v)
-
-
-def peak_rss_mb() -> float:
-    """Peak resident set size of this process in MiB.
-
-    On Linux ``VmHWM`` of ``/proc/self/status``: ``getrusage``'s ``ru_maxrss`` survives
-    ``fork`` + ``exec``, so a run started by a large process (a Ray worker, a benchmark
-    harness) would report its parent's peak instead of its own."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024.0
-    except (OSError, ValueError, IndexError):
-        pass
-    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return r / 1024.0 if sys.platform != "darwin" else r / (1024.0 * 1024.0)
 
 
 def _versions() -> dict:

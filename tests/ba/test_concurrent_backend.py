@@ -1,0 +1,138 @@
+"""The window adjustment in a worker process (``backend.concurrent``): same poses, clean ends."""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import signal
+import sys
+
+import numpy as np
+import pytest
+from synthetic_sequences import make_sequence
+
+pytest.importorskip("gtsam", reason="the window back-end needs gtsam (a dependency of the project)")
+
+from trianflow_vo.ba.backend import WindowBackend  # noqa: E402
+from trianflow_vo.ba.worker import init_worker  # noqa: E402
+from trianflow_vo.config import Config, apply_overrides  # noqa: E402
+from trianflow_vo.pipeline import run  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory):
+    seq = tmp_path_factory.mktemp("seq") / "urban"
+    make_sequence("urban_turn", seq, n_frames=16, seed=5, size=(128, 384))
+    return seq
+
+
+def _run(seq, out, *overrides):
+    run(seq, out, apply_overrides(Config(), ["output.plot=false", "backend.window=5", *overrides]))
+    return json.loads((out / "run.json").read_text()), np.loadtxt(out / "poses.txt").reshape(-1, 3, 4)
+
+
+def test_the_worker_process_gives_the_poses_of_a_blocking_adjustment(drive, tmp_path):
+    doc_c, p_c = _run(drive, tmp_path / "c", "backend.concurrent=true")
+    doc_b, p_b = _run(drive, tmp_path / "b", "backend.concurrent=false")
+    _, p_0 = _run(drive, tmp_path / "w0", "backend.window=0")
+    be_c, be_b = doc_c["backend"], doc_b["backend"]
+    assert be_c["concurrent"] is True and be_b["concurrent"] is False
+    assert be_c["solves"] == be_b["solves"] >= 4 and be_c["revisions"] == be_b["revisions"] == be_c["solves"]
+    # the adjustments did move the poses, and both ways the same (poses.txt prints 9 digits)
+    assert np.abs(p_b - p_0).max() > 1e-4
+    np.testing.assert_allclose(p_c, p_b, rtol=0, atol=1e-8)
+    assert be_c["worker_peak_rss_mb"] > 10 and be_b["worker_peak_rss_mb"] is None
+    assert multiprocessing.active_children() == []  # the worker was stopped with the run
+
+
+def test_a_worker_process_that_dies_is_reported_and_the_run_adjusts_in_process(drive, tmp_path, monkeypatch):
+    real = WindowBackend._worker
+
+    def dying(self):
+        pool = real(self)
+        pool.submit(os._exit, 3).exception()  # the worker process exits: the pool is broken
+        return pool
+
+    monkeypatch.setattr(WindowBackend, "_worker", dying)
+    doc, poses = _run(drive, tmp_path / "died", "backend.concurrent=true")
+    _, p_b = _run(drive, tmp_path / "b", "backend.concurrent=false")
+    assert doc["status"] == "completed"
+    warning = doc["warnings"]["backend-worker"]
+    assert warning["count"] == 1 and "adjusting in this process" in warning["items"][0]["message"]
+    assert doc["backend"]["failures"] == 0 and doc["backend"]["revisions"] == doc["backend"]["solves"] >= 4
+    np.testing.assert_allclose(poses, p_b, rtol=0, atol=1e-8)  # the lost window was solved again here
+    assert multiprocessing.active_children() == []
+
+
+def test_a_run_that_fails_mid_way_stops_the_worker(drive, tmp_path, monkeypatch):
+    import trianflow_vo.pipeline as pipeline
+
+    real = pipeline._step
+    calls = {"n": 0}
+
+    def failing(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 9:  # after a few adjustments were started
+            raise RuntimeError("boom")
+        return real(*a, **k)
+
+    monkeypatch.setattr(pipeline, "_step", failing)
+    with pytest.raises(RuntimeError, match="boom"):
+        _run(drive, tmp_path / "fail", "backend.concurrent=true")
+    doc = json.loads((tmp_path / "fail" / "run.json").read_text())
+    assert doc["status"] == "failed" and doc["backend"]["solves"] >= 1
+    assert multiprocessing.active_children() == []
+
+
+def test_depth_rescale_adjusts_in_the_run_process_and_says_so(drive, tmp_path):
+    doc, _ = _run(drive, tmp_path / "rescale", "backend.rescale_depth=true")  # concurrent left at its default
+    assert doc["config"]["backend"]["concurrent"] is True
+    assert doc["backend"]["concurrent"] is False and doc["backend"]["worker_peak_rss_mb"] is None
+    assert doc["backend"]["depth_rescales"] > 0
+
+
+def test_the_worker_leaves_ctrl_c_to_the_run():
+    before = signal.getsignal(signal.SIGINT)
+    try:
+        init_worker()
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, before)
+
+
+PARENT = """
+import os, sys
+from concurrent.futures import ProcessPoolExecutor
+import multiprocessing
+from trianflow_vo.ba.worker import init_worker
+if __name__ == "__main__":
+    pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=init_worker,
+                               initargs=(os.getpid(), 0.1))
+    print(pool.submit(os.getpid).result(), flush=True)
+    os._exit(9)  # as if killed: nothing closes the pool
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc to tell a zombie from a live process")
+def test_the_worker_ends_when_its_run_is_killed(tmp_path):
+    import subprocess
+    import time
+
+    script = tmp_path / "parent.py"
+    script.write_text(PARENT)
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 9, out.stderr
+    child = int(out.stdout.split()[0])
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        try:
+            os.kill(child, 0)
+        except ProcessLookupError:
+            return  # gone
+        with open(f"/proc/{child}/stat") as f:  # a zombie (exited, not yet reaped by init) counts as gone
+            if f.read().split(")")[-1].split()[0] == "Z":
+                return
+        time.sleep(0.1)
+    os.kill(child, signal.SIGKILL)
+    pytest.fail(f"the worker process {child} outlived its killed parent")
