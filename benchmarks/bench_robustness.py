@@ -216,6 +216,7 @@ def run_case(case: dict, seed: int, extra: list[str], run_dir: Path, timeout: fl
         "fps": summary.get("fps"),
         "frame_ms_median": summary.get("frame_ms_median"),
         "peak_rss_mb": summary.get("peak_rss_mb") or res["rusage_peak_rss_mb"],
+        "worker_rss_mb": (summary.get("backend") or {}).get("worker_peak_rss_mb"),
         "revisions": (summary.get("revisions") or {}).get("count"),
         "backend": _describe_backend(summary.get("backend")),
     })
@@ -307,6 +308,11 @@ def _median(xs):
     return statistics.median(xs) if xs else None
 
 
+def _worker_rss(a: dict) -> str:
+    w = a.get("worker_rss_mb")
+    return f" +{w:.0f} w" if w else ""
+
+
 def aggregate(case: dict, runs: list[dict]) -> dict:
     ok = [r for r in runs if r.get("status") == "completed"]
     first = runs[0] if runs else {}
@@ -317,6 +323,7 @@ def aggregate(case: dict, runs: list[dict]) -> dict:
         "fps": _median([r.get("fps") for r in ok]),
         "frame_ms_median": _median([r.get("frame_ms_median") for r in ok]),
         "peak_rss_mb": max((r.get("peak_rss_mb") or 0) for r in runs) if runs else None,
+        "worker_rss_mb": (max((r.get("worker_rss_mb") or 0) for r in runs) or None) if runs else None,
         "failed_frames_max": max(((r.get("branch_counts") or {}).get("failed", 0) for r in runs), default=None),
         "errors": sorted({r.get("error") or r.get("eval_error") for r in runs} - {None}),
         "backends": sorted({r.get("backend") for r in runs} - {None}),
@@ -369,8 +376,8 @@ def markdown_section(meta: dict, cases: list[dict], results: dict) -> str:
                f"{meta['cores']} cores; {meta['threads']} threads per run, {meta['jobs']} run(s) at a time; "
                f"total {meta['elapsed_min']:.1f} min")
     floor = max((a.get("launcher_rss_mb") or 0.0) for a in results.values()) if results else 0.0
-    out.append(f"- Peak RSS is run.json's `peak_rss_mb` (VmHWM, the run's own); the harness itself stays at "
-               f"{floor:.0f} MB")
+    out.append(f"- Peak RSS is run.json's `peak_rss_mb` (VmHWM, the run's own; `+N w`: the bundle adjustment's "
+               f"worker process, `backend.worker_peak_rss_mb`); the harness itself stays at {floor:.0f} MB")
     backends = sorted({b for a in results.values() for b in a.get("backends", [])})
     out.append(f"- Back-end the runs report (run.json `backend`): {', '.join(backends) or 'n/a'}")
     out.append(f"- Command: `{meta['command']}`")
@@ -387,7 +394,7 @@ def markdown_section(meta: dict, cases: list[dict], results: dict) -> str:
                        f"{_f(a.get('ate_pct'))} [{_f(a.get('ate_pct_min'))}-{_f(a.get('ate_pct_max'))}] | "
                        f"{_f(a.get('ate_rmse'), '{:.3f}')} | {_branches(a['branches_seed0'])} | "
                        f"{_f(a['fps'], '{:.1f}')} | {_f(a['frame_ms_median'], '{:.0f}')} | "
-                       f"{_f(a['peak_rss_mb'], '{:.0f}')} | {_status(a)} |")
+                       f"{_f(a['peak_rss_mb'], '{:.0f}')}{_worker_rss(a)} | {_status(a)} |")
         out.append("")
     syn = [c for c in cases if c["group"] == "synthetic"]
     if syn:
