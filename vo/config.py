@@ -152,6 +152,9 @@ class FlowConfig(_Section):
     NAME = "flow"
     model: Path | None = _opt(None, "ONNX optical-flow network; null = OpenCV DIS flow (no weights)")
     dis_preset: Literal["fast", "medium", "fine"] = _opt("medium", "OpenCV DIS preset when flow.model is null")
+    ahead: bool = _opt(True, "DIS flow: compute the next frame's flow in a background thread while the current "
+                             "frame is solved (against the keyframe it will most likely have; the same results, "
+                             "less time per frame)")
 
 
 @dataclass(frozen=True)

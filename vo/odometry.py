@@ -58,28 +58,37 @@ class Odometry:
         self.T_world_last = np.eye(4)
         self.last_step_norm: float | None = None  # |t| of the last keyframe-to-keyframe step
         self.line = 0
+        self._ahead: tuple[np.ndarray, object] | None = None  # (next image, its prepared input) when speculating
+        self._new_keyframe_last = True  # did the last frame become the keyframe (the guess for the next)
 
     def describe(self) -> dict:
         return {"odometry": "trianflow", "scale_source": self.scale_source, "flow_source": self.flow.describe(),
                 "depth_source": self.depth.describe()}
 
     def step(self, frame_index: int, timestamp: float | None, image: np.ndarray,
-             timer: StageTimer | None = None) -> FrameResult:
+             timer: StageTimer | None = None, next_image: np.ndarray | None = None) -> FrameResult:
         """Process one working-resolution frame ``(h, w, 3)`` uint8 BGR.
 
         Branches: first frame (INIT); too few reliable matches (FAILED); otherwise
         the policy of ``scale.source`` (:meth:`_solve_to_keyframe` or
         :meth:`_solve_pairwise`).
-        ``timer`` may hold stages timed before the call (the pipeline's resize).
+        ``timer`` may hold stages timed before the call. ``next_image``: the frame that
+        comes next, when known; a flow source that can compute ahead
+        (:class:`~trianflow_vo.flow.speculative.SpeculativeFlow`) starts on its flow
+        while this frame is solved. The results do not depend on it.
         """
         tm = timer if timer is not None else StageTimer()
         t0 = time.perf_counter()
-        prepared = self.flow.prepare(image)
+        ahead, self._ahead = self._ahead, None
+        prepared = ahead[1] if ahead is not None and ahead[0] is image else self.flow.prepare(image)
         tm.add("prepare", t0)
         if self.keyframe is None:
+            self._compute_ahead(prepared, prepared, next_image)
             return self._start(frame_index, timestamp, image, prepared, tm)
         kf = self.keyframe
         m = self.front.match(kf, prepared, tm)
+        # guess: this frame ends like the last one (becomes the keyframe, or keeps it)
+        self._compute_ahead(prepared if self._new_keyframe_last else kf.prepared, prepared, next_image)
         ref, stats = None, {}
         if m.idx.size < max(8, self.cfg.geometry.min_inliers):
             sol = failed_solution(kf.T_world_cam, self.T_world_last, f"only {m.idx.size} reliable flow matches")
@@ -139,6 +148,15 @@ class Odometry:
         sol = self.front.two_view_to_depth(kf, ref, self._reference(cur, tm), m, R_rot, tm)
         return (sol if sol.tracks is not None else replace(sol, tracks=Tracks.empty())), ref
 
+    def _compute_ahead(self, ref_prepared, prepared, next_image: np.ndarray | None) -> None:
+        """Start the flow ``ref_prepared -> next frame`` in the background, if the source can."""
+        speculate = getattr(self.flow, "speculate", None)
+        if speculate is None or next_image is None:
+            return
+        nxt = self.flow.prepare(next_image)
+        self._ahead = (next_image, nxt)
+        speculate(ref_prepared, nxt)
+
     def _reference(self, kf: Keyframe, tm: StageTimer) -> ReferenceDepth | None:
         t0 = time.perf_counter()
         ref = self.depth.reference(kf)
@@ -161,6 +179,7 @@ class Odometry:
         """Build the frame's result once, then move the state on (new keyframe after a two-view step)."""
         kf = self.keyframe
         is_keyframe = sol.tracks is not None
+        self._new_keyframe_last = is_keyframe
         if is_keyframe:
             if sol.step_norm is not None:  # a handed-on keyframe (PnP / rotation) keeps the last step length
                 self.last_step_norm = sol.step_norm

@@ -20,6 +20,7 @@ import os
 import signal
 import time
 from collections.abc import Callable, Iterable
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -30,7 +31,7 @@ from trianflow_vo.depth.base import DepthPrior
 from trianflow_vo.errors import ConfigError, InputError
 from trianflow_vo.flow.base import FlowSource
 from trianflow_vo.frame import Branch, FrameResult
-from trianflow_vo.frames import FrameSkip
+from trianflow_vo.frames import Frame, FrameSkip
 from trianflow_vo.io.calib import how_to_give_intrinsics
 from trianflow_vo.io.run_dir import InterruptSignals, open_run_dir, signal_name
 from trianflow_vo.io.run_writer import RunClock, RunWriter, write_failed_status
@@ -46,14 +47,20 @@ MakeOdometry = Callable[[PinholeCamera, Config], object]
 
 
 def make_flow_source(config: Config) -> FlowSource:
-    """OpenCV DIS (weight-free) or the ONNX flow network of ``flow.model``."""
+    """OpenCV DIS (weight-free; computed one frame ahead with ``flow.ahead``) or the ONNX flow
+    network of ``flow.model``."""
     if config.flow.model is not None:
         from trianflow_vo.flow.onnx_flow import OnnxFlow
 
         return OnnxFlow(config.flow.model, threads=config.runtime.threads)
     from trianflow_vo.flow.dis import DisFlow
 
-    return DisFlow(config.flow.dis_preset)
+    dis = DisFlow(config.flow.dis_preset)
+    if not config.flow.ahead:
+        return dis
+    from trianflow_vo.flow.speculative import SpeculativeFlow
+
+    return SpeculativeFlow(dis, dis.clone())
 
 
 def make_depth_prior(config: Config, size_hw: tuple[int, int]) -> DepthPrior:
@@ -184,15 +191,16 @@ def _run(seq: Path, out_dir: Path, config: Config, observers: list[Observer], od
         for ob in all_obs:
             ob.on_start(len(reader))
         clock.start(len(reader))  # the frame rate counts from the first frame read
-        with Prefetcher(reader, depth=2) as frames:
+        ahead = isinstance(odo, Odometry)  # it may start on the next frame's flow while solving this one
+        with Prefetcher(_at_working_size(reader, (h, w)), depth=2) as frames:
             t_prev = time.perf_counter()
-            for item in frames:
+            for item, nxt in _with_next(frames):
                 if isinstance(item, FrameSkip):
                     clock.frame_skipped()
                     writer.skip(item.index, item.source, item.reason)
                     runlog.warn("skipped-frame", f"{item.source}: skipped ({item.reason})", frame=item.index)
                     continue
-                result = _step(odo, item, (h, w), t_prev)
+                result = _step(odo, item, t_prev, nxt.image if ahead and isinstance(nxt, Frame) else None)
                 t_prev = time.perf_counter()
                 _report(result, runlog)
                 contradicted = watch.update(result)
@@ -220,7 +228,9 @@ def _run(seq: Path, out_dir: Path, config: Config, observers: list[Observer], od
         with signals.deferred():  # a second Ctrl-C must not lose the final status
             try:
                 _close(backend, runlog)
+                _close(getattr(odo, "flow", None), runlog)  # a flow computed ahead still running
                 info["backend"] = backend.describe()  # its counts and time, in the final run.json
+                info.update(odo.describe())  # and the flow source's
                 _finish(writer, extra, trajectory, gt, config, out_dir, seq, runlog, info, interrupted, error,
                         signame)
             finally:
@@ -322,15 +332,50 @@ def check_memory(size_hw: tuple[int, int], source_hw: tuple[int, int]) -> None:
             "choose a smaller --size", key="input.size")
 
 
-def _step(odo, item, size_hw: tuple[int, int], t_prev: float) -> FrameResult:
-    """Resize one decoded frame to the working size and run the odometry on it."""
-    timer = StageTimer(t_start=t_prev)  # frame time includes waiting for the decoder
-    t0 = time.perf_counter()
-    img = item.image
-    if img.shape[:2] != size_hw:
-        img = cv2.resize(img, (size_hw[1], size_hw[0]), interpolation=cv2.INTER_AREA)
-    timer.add("resize", t0)
-    return odo.step(item.index, item.timestamp, img, timer)
+def _at_working_size(items, size_hw: tuple[int, int]):
+    """The decoded frames resized to the working size, as they come. Iterated in the prefetch
+    thread, so the resize (``cv2.resize`` releases the GIL) overlaps the previous frame's work."""
+    it = iter(items)
+    try:
+        for item in it:
+            if isinstance(item, Frame) and item.image.shape[:2] != size_hw:
+                item = replace(item, image=cv2.resize(item.image, (size_hw[1], size_hw[0]),
+                                                      interpolation=cv2.INTER_AREA))
+            yield item
+    finally:
+        close = getattr(it, "close", None)
+        if close is not None:
+            close()  # e.g. release a video capture when stopped early
+
+
+def _with_next(items):
+    """``(item, the item after it or None)``. An error reading the next item is raised after the
+    current one has been handed out (no frame is lost to it)."""
+    it = iter(items)
+    try:
+        cur = next(it)
+    except StopIteration:
+        return
+    while True:
+        try:
+            nxt = next(it)
+        except StopIteration:
+            yield cur, None
+            return
+        except BaseException:
+            yield cur, None
+            raise
+        yield cur, nxt
+        cur = nxt
+
+
+def _step(odo, item, t_prev: float, next_image=None) -> FrameResult:
+    """Run the odometry on one frame (already at the working size: :func:`_at_working_size`);
+    ``next_image``: the next frame's image, for an odometry that computes ahead."""
+    timer = StageTimer(t_start=t_prev)  # frame time includes waiting for the decoder (and the resize)
+    if next_image is None:
+        return odo.step(item.index, item.timestamp, item.image, timer)
+    return odo.step(item.index, item.timestamp, item.image, timer, next_image=next_image)
 
 
 def _report(result: FrameResult, runlog: RunLog) -> None:
@@ -346,15 +391,16 @@ def _report(result: FrameResult, runlog: RunLog) -> None:
         runlog.info(what)
 
 
-def _close(backend, runlog: RunLog) -> None:
-    """Let the back-end release its worker; a failure there is logged, never lost outputs."""
-    close = getattr(backend, "close", None)
+def _close(part, runlog: RunLog) -> None:
+    """Let the back-end (or the flow source) release its worker; a failure there is logged, never
+    lost outputs."""
+    close = getattr(part, "close", None)
     if close is None:
         return
     try:
         close()
     except Exception as exc:
-        runlog.warn("backend-close", f"the back-end did not close cleanly: {exc}")
+        runlog.warn("close", f"{type(part).__name__} did not close cleanly: {exc}")
 
 
 def _revise(revision, trajectory: Trajectory, odo, observers: list[Observer]) -> None:

@@ -22,7 +22,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 DEFAULTS = {
     "input": {"start": 0, "end": None, "stride": 1, "size": None, "intrinsics": None, "calib": None},
-    "flow": {"model": None, "dis_preset": "medium"},
+    "flow": {"model": None, "dis_preset": "medium", "ahead": True},
     "depth": {"model": None, "fusion": True, "decay": 0.8, "max_log_gap": 0.3},
     "sampling": {"n_samples": 6000, "top_ratio": 0.2, "max_anchors": 6000, "seed": 0},
     "geometry": {"ransac_method": "ransac", "ransac_threshold_px": 0.25, "ransac_subset": 1000, "refine": True,
@@ -159,7 +159,7 @@ def test_unknown_section_and_key():
     assert m == ("cfg.yaml: unknown section 'flwo'; valid sections: input, flow, depth, sampling, geometry, "
                  "scale, keyframes, backend, output, runtime")
     m = err(config_from_dict, {"flow": {"foo": 1}}, "cfg.yaml")
-    assert m == "cfg.yaml: unknown key 'flow.foo'; valid keys of flow: dis_preset, model"
+    assert m == "cfg.yaml: unknown key 'flow.foo'; valid keys of flow: ahead, dis_preset, model"
 
 
 def test_choice_range_and_type_errors():
@@ -289,7 +289,7 @@ def test_override_errors():
     assert err(apply_overrides, c, ["sampling.top_ratio=2.0"]) == "--set sampling.top_ratio: 2.0 is out of range (0, 1]"
     assert err(apply_overrides, c, ["sampling.seed=2.5"]) == "--set sampling.seed: 2.5 is not an integer"
     assert err(apply_overrides, c, ["output.plot=yes please"]).startswith("--set output.plot: 'yes please' is not a bool")
-    assert err(apply_overrides, c, ["flow.foo=1"]) == "--set: unknown key 'flow.foo'; valid keys of flow: dis_preset, model"
+    assert err(apply_overrides, c, ["flow.foo=1"]) == "--set: unknown key 'flow.foo'; valid keys of flow: ahead, dis_preset, model"
     assert err(apply_overrides, c, ["flwo.dis_preset=fine"]).startswith("--set: unknown section 'flwo'; valid sections: input,")
     m = err(apply_overrides, c, ["sampling.seed"])
     assert m.startswith("--set: 'sampling.seed' is not section.key=value")

@@ -28,6 +28,10 @@ class DisFlow:
         for key, value in overrides.items():
             getattr(self._dis, "set" + key)(value)
 
+    def clone(self) -> DisFlow:
+        """A second source with the same settings (one DIS object serves one thread at a time)."""
+        return DisFlow(self.preset)
+
     def prepare(self, image: np.ndarray) -> np.ndarray:
         """Grey ``(h, w)`` uint8, contiguous (DIS requires it), from ``(h, w, 3)`` BGR."""
         if image.ndim == 3:
