@@ -10,32 +10,17 @@ import sys
 
 import numpy as np
 import pytest
-from synthetic_sequences import make_sequence
 
 pytest.importorskip("gtsam", reason="the window back-end needs gtsam (a dependency of the project)")
 
 from trianflow_vo.ba.backend import WindowBackend  # noqa: E402
 from trianflow_vo.ba.worker import init_worker  # noqa: E402
-from trianflow_vo.config import Config, apply_overrides  # noqa: E402
-from trianflow_vo.pipeline import run  # noqa: E402
 
 
-@pytest.fixture(scope="module")
-def drive(tmp_path_factory):
-    seq = tmp_path_factory.mktemp("seq") / "urban"
-    make_sequence("urban_turn", seq, n_frames=16, seed=5, size=(128, 384))
-    return seq
-
-
-def _run(seq, out, *overrides):
-    run(seq, out, apply_overrides(Config(), ["output.plot=false", "backend.window=5", *overrides]))
-    return json.loads((out / "run.json").read_text()), np.loadtxt(out / "poses.txt").reshape(-1, 3, 4)
-
-
-def test_the_worker_process_gives_the_poses_of_a_blocking_adjustment(drive, tmp_path):
-    doc_c, p_c = _run(drive, tmp_path / "c", "backend.concurrent=true")
-    doc_b, p_b = _run(drive, tmp_path / "b", "backend.concurrent=false")
-    _, p_0 = _run(drive, tmp_path / "w0", "backend.window=0")
+def test_the_worker_process_gives_the_poses_of_a_blocking_adjustment(drive, tmp_path, run_seq):
+    doc_c, p_c = run_seq(drive, tmp_path / "c", "backend.window=5", "backend.concurrent=true")
+    doc_b, p_b = run_seq(drive, tmp_path / "b", "backend.window=5", "backend.concurrent=false")
+    _, p_0 = run_seq(drive, tmp_path / "w0", "backend.window=0")
     be_c, be_b = doc_c["backend"], doc_b["backend"]
     assert be_c["concurrent"] is True and be_b["concurrent"] is False
     assert be_c["solves"] == be_b["solves"] >= 4 and be_c["revisions"] == be_b["revisions"] == be_c["solves"]
@@ -46,7 +31,8 @@ def test_the_worker_process_gives_the_poses_of_a_blocking_adjustment(drive, tmp_
     assert multiprocessing.active_children() == []  # the worker was stopped with the run
 
 
-def test_a_worker_process_that_dies_is_reported_and_the_run_adjusts_in_process(drive, tmp_path, monkeypatch):
+def test_a_worker_process_that_dies_is_reported_and_the_run_adjusts_in_process(drive, tmp_path, monkeypatch,
+                                                                                run_seq):
     real = WindowBackend._worker
 
     def dying(self):
@@ -55,8 +41,8 @@ def test_a_worker_process_that_dies_is_reported_and_the_run_adjusts_in_process(d
         return pool
 
     monkeypatch.setattr(WindowBackend, "_worker", dying)
-    doc, poses = _run(drive, tmp_path / "died", "backend.concurrent=true")
-    _, p_b = _run(drive, tmp_path / "b", "backend.concurrent=false")
+    doc, poses = run_seq(drive, tmp_path / "died", "backend.window=5", "backend.concurrent=true")
+    _, p_b = run_seq(drive, tmp_path / "b", "backend.window=5", "backend.concurrent=false")
     assert doc["status"] == "completed"
     warning = doc["warnings"]["backend-worker"]
     assert warning["count"] == 1 and "adjusting in this process" in warning["items"][0]["message"]
@@ -65,7 +51,7 @@ def test_a_worker_process_that_dies_is_reported_and_the_run_adjusts_in_process(d
     assert multiprocessing.active_children() == []
 
 
-def test_a_run_that_fails_mid_way_stops_the_worker(drive, tmp_path, monkeypatch):
+def test_a_run_that_fails_mid_way_stops_the_worker(drive, tmp_path, monkeypatch, run_seq):
     import trianflow_vo.pipeline as pipeline
 
     real = pipeline._step
@@ -79,14 +65,15 @@ def test_a_run_that_fails_mid_way_stops_the_worker(drive, tmp_path, monkeypatch)
 
     monkeypatch.setattr(pipeline, "_step", failing)
     with pytest.raises(RuntimeError, match="boom"):
-        _run(drive, tmp_path / "fail", "backend.concurrent=true")
+        run_seq(drive, tmp_path / "fail", "backend.window=5", "backend.concurrent=true")
     doc = json.loads((tmp_path / "fail" / "run.json").read_text())
     assert doc["status"] == "failed" and doc["backend"]["solves"] >= 1
     assert multiprocessing.active_children() == []
 
 
-def test_depth_rescale_adjusts_in_the_run_process_and_says_so(drive, tmp_path):
-    doc, _ = _run(drive, tmp_path / "rescale", "backend.rescale_depth=true")  # concurrent left at its default
+def test_depth_rescale_adjusts_in_the_run_process_and_says_so(drive, tmp_path, run_seq):
+    # backend.concurrent left at its default (true)
+    doc, _ = run_seq(drive, tmp_path / "rescale", "backend.window=5", "backend.rescale_depth=true")
     assert doc["config"]["backend"]["concurrent"] is True
     assert doc["backend"]["concurrent"] is False and doc["backend"]["worker_peak_rss_mb"] is None
     assert doc["backend"]["depth_rescales"] > 0

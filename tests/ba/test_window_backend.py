@@ -2,35 +2,19 @@
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
-from synthetic_sequences import make_sequence
 
 pytest.importorskip("gtsam", reason="the window back-end needs gtsam (a dependency of the project)")
 
 from trianflow_vo.backend import NoBackend, PoseRevision, make_backend  # noqa: E402
 from trianflow_vo.ba.backend import WindowBackend  # noqa: E402
-from trianflow_vo.config import BackendConfig, Config, ConfigError, apply_overrides  # noqa: E402
+from trianflow_vo.config import BackendConfig, ConfigError  # noqa: E402
 from trianflow_vo.keyframe import Tracks  # noqa: E402
-from trianflow_vo.pipeline import run  # noqa: E402
 
 
-@pytest.fixture(scope="module")
-def drive(tmp_path_factory):
-    seq = tmp_path_factory.mktemp("seq") / "urban"
-    make_sequence("urban_turn", seq, n_frames=14, seed=3, size=(128, 384))
-    return seq
-
-
-def _run(seq, out, *overrides):
-    run(seq, out, apply_overrides(Config(), ["output.plot=false", *overrides]))
-    return json.loads((out / "run.json").read_text()), np.loadtxt(out / "poses.txt").reshape(-1, 3, 4)
-
-
-def test_window_backend_revises_keyframes_and_reports_in_run_json(drive, tmp_path):
-    doc, poses = _run(drive, tmp_path / "ba", "backend.window=5")
+def test_window_backend_revises_keyframes_and_reports_in_run_json(drive, tmp_path, run_seq):
+    doc, poses = run_seq(drive, tmp_path / "ba", "backend.window=5")
     be = doc["backend"]
     assert be["name"] == "window-ba" and be["window"] == 5
     assert be["solves"] >= 5 and be["revisions"] >= 5 and be["failures"] == 0
@@ -40,26 +24,26 @@ def test_window_backend_revises_keyframes_and_reports_in_run_json(drive, tmp_pat
     assert np.isfinite(poses).all()
 
 
-def test_window_0_is_the_pure_two_view_pipeline(drive, tmp_path):
-    doc0, p0 = _run(drive, tmp_path / "w0", "backend.window=0")
-    docn, pn = _run(drive, tmp_path / "none", "backend.kind=none")
+def test_window_0_is_the_pure_two_view_pipeline(drive, tmp_path, run_seq):
+    doc0, p0 = run_seq(drive, tmp_path / "w0", "backend.window=0")
+    docn, pn = run_seq(drive, tmp_path / "none", "backend.kind=none")
     assert doc0["backend"] == {"name": "none"} and doc0["revisions"]["count"] == 0
     np.testing.assert_array_equal(p0, pn)
 
 
 @pytest.mark.parametrize("concurrent", ["true", "false"])
-def test_a_failing_adjustment_keeps_the_front_end_poses_and_the_run_goes_on(drive, tmp_path, concurrent):
+def test_a_failing_adjustment_keeps_the_front_end_poses_and_the_run_goes_on(drive, tmp_path, concurrent, run_seq):
     # more points asked for than any window has: every solve fails (in the worker process, or here)
-    doc, poses = _run(drive, tmp_path / "fail", "backend.window=5", "backend.min_points=100000",
+    doc, poses = run_seq(drive, tmp_path / "fail", "backend.window=5", "backend.min_points=100000",
                       f"backend.concurrent={concurrent}")
-    _, p0 = _run(drive, tmp_path / "w0", "backend.window=0")
+    _, p0 = run_seq(drive, tmp_path / "w0", "backend.window=0")
     assert doc["status"] == "completed"
     assert doc["backend"]["failures"] == doc["backend"]["solves"] > 0
     assert doc["warnings"]["backend-failed"]["count"] == doc["backend"]["failures"]
     np.testing.assert_array_equal(poses, p0)  # no revision: the front-end's poses
 
 
-def test_an_implausible_adjustment_is_rejected(drive, tmp_path, monkeypatch):
+def test_an_implausible_adjustment_is_rejected(drive, tmp_path, monkeypatch, run_seq):
     import trianflow_vo.ba.worker as ba_worker
 
     real = ba_worker.solve_window
@@ -73,7 +57,7 @@ def test_an_implausible_adjustment_is_rejected(drive, tmp_path, monkeypatch):
         return sol, ok
 
     monkeypatch.setattr(ba_worker, "solve_window", wild)  # in this process: not concurrent
-    doc, poses = _run(drive, tmp_path / "wild", "backend.window=5", "backend.concurrent=false")
+    doc, poses = run_seq(drive, tmp_path / "wild", "backend.window=5", "backend.concurrent=false")
     assert doc["backend"]["rejected"] == doc["backend"]["solves"] > 0
     assert np.abs(poses[:, :, 3]).max() < 50
 

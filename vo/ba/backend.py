@@ -24,8 +24,8 @@ step triangulated are moved with it. The front-end solves each frame relative to
 its keyframe, so the final poses are those of an adjustment that blocks (to the
 last printed digit); only the moment a revision reaches the outputs moves by one
 keyframe. The depth rescale needs the blocking order: with it, windows are
-adjusted here (``concurrent`` false in ``run.json``). If
-the worker process dies, the run says so and adjusts in its own process from then on.
+adjusted here (``concurrent`` false in ``run.json``). If the worker process dies,
+the run says so and adjusts in its own process from then on.
 
 A solve that fails (too few points, indeterminate system, error not reduced) or
 that would move a keyframe implausibly far (more than ``max_shift`` keyframe steps
@@ -192,7 +192,8 @@ class WindowBackend:
         return {
             "name": self.name, "window": c.window, "fixed": c.fixed,
             "concurrent": bool(c.concurrent and not c.rescale_depth),
-            "huber_px": c.huber_px, "max_iterations": c.max_iterations, "every": c.every, "max_tracks": c.max_tracks, "cell_px": c.cell_px,
+            "huber_px": c.huber_px, "max_iterations": c.max_iterations, "every": c.every,
+            "max_tracks": c.max_tracks, "cell_px": c.cell_px,
             "track_fb_px": c.track_fb_px, "track_epi_px": c.track_epi_px, "outlier_px": c.outlier_px,
             **self.stats,
             "ms_total": float(np.sum(self._ms)) if self._ms else 0.0, "ms_median": med(self._ms),
@@ -229,7 +230,7 @@ class WindowBackend:
     def _advance(self, k: int, keyframe: Keyframe, result: FrameResult,
                  moved: np.ndarray | None = None) -> "_Outcome | None":
         """Move the tracks into keyframe ``k`` (its pose already in ``self.poses``) and, when one
-        is due, start an adjustment: solved here (returns its outcome) or in a worker thread
+        is due, start an adjustment: solved here (returns its outcome) or in the worker process
         (``backend.concurrent``; returns None, :meth:`_collect` ends it). ``moved`` ``(4, 4)``: the
         world correction a revision of the reference applied, to apply to the step's points too."""
         view = result.view
