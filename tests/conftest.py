@@ -39,3 +39,31 @@ def _home_out_of_the_way(tmp_path_factory):
     mp.setenv("HOME", str(tmp_path_factory.mktemp("home")))
     yield
     mp.undo()
+
+
+# -- the back-end tests (tests/ba): a rendered drive and a run of the pipeline on it ------------------
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory):
+    """A rendered urban turn (14 frames, known poses)."""
+    from synthetic_sequences import make_sequence
+
+    seq = tmp_path_factory.mktemp("seq") / "urban"
+    make_sequence("urban_turn", seq, n_frames=14, seed=3, size=(128, 384))
+    return seq
+
+
+@pytest.fixture
+def run_seq():
+    """``run_seq(seq, out, *overrides) -> (run.json, poses (N, 3, 4))`` with plots off."""
+    import json
+
+    import numpy as np
+
+    from trianflow_vo.config import Config, apply_overrides
+    from trianflow_vo.pipeline import run
+
+    def _run(seq, out, *overrides):
+        run(seq, out, apply_overrides(Config(), ["output.plot=false", *overrides]))
+        return json.loads((out / "run.json").read_text()), np.loadtxt(out / "poses.txt").reshape(-1, 3, 4)
+
+    return _run
