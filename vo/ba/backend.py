@@ -140,7 +140,8 @@ class WindowBackend:
         self._pool = None  # the worker process (started at the first keyframe)
         self._worker_rss_mb: float | None = None
         # the depth rescale must reach the newest keyframe before the next frame is solved: blocking
-        self._concurrent = bool(config.concurrent and not config.rescale_depth)
+        self.concurrent = bool(config.concurrent and not config.rescale_depth)  # as planned (run.json)
+        self._concurrent = self.concurrent  # false once the worker is lost
 
     # -- the Backend protocol ------------------------------------------------------------------------
     def add_keyframe(self, keyframe: Keyframe, result: FrameResult) -> PoseRevision | None:
@@ -191,7 +192,7 @@ class WindowBackend:
         med = (lambda v: float(np.median(v)) if v else None)
         return {
             "name": self.name, "window": c.window, "fixed": c.fixed,
-            "concurrent": bool(c.concurrent and not c.rescale_depth),
+            "concurrent": self.concurrent,
             "huber_px": c.huber_px, "max_iterations": c.max_iterations, "every": c.every,
             "max_tracks": c.max_tracks, "cell_px": c.cell_px,
             "track_fb_px": c.track_fb_px, "track_epi_px": c.track_epi_px, "outlier_px": c.outlier_px,
@@ -266,6 +267,8 @@ class WindowBackend:
         c = self.cfg
         fixed = set(window[:n_fixed])
         poses = {j: self.poses[j] for j in window}
+        # copies (pickled for the worker later), observations in window order: the order the
+        # factors enter the graph in (a plain copy of tracks.obs changes the poses in the 9th digit)
         seen = {t for j in window for t in self.tracks.obs.get(j, (np.zeros(0, np.int64),))[0].tolist()}
         args = (self.K, poses, fixed, {j: self.tracks.obs[j] for j in window if j in self.tracks.obs},
                 {t: X for t, X in self.tracks.landmarks.items() if t in seen})
@@ -284,7 +287,7 @@ class WindowBackend:
         return self._conclude(job)
 
     def _worker(self):
-        """The worker process's pool (started on first use), or None when adjusting in this process."""
+        """The worker process's pool (started on first use)."""
         if self._pool is None:
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor
