@@ -83,12 +83,12 @@ class Odometry:
         prepared = ahead[1] if ahead is not None and ahead[0] is image else self.flow.prepare(image)
         tm.add("prepare", t0)
         if self.keyframe is None:
-            self._compute_ahead(prepared, prepared, next_image)
+            self._compute_ahead(prepared, next_image)
             return self._start(frame_index, timestamp, image, prepared, tm)
         kf = self.keyframe
         m = self.front.match(kf, prepared, tm)
         # guess: this frame ends like the last one (becomes the keyframe, or keeps it)
-        self._compute_ahead(prepared if self._new_keyframe_last else kf.prepared, prepared, next_image)
+        self._compute_ahead(prepared if self._new_keyframe_last else kf.prepared, next_image)
         ref, stats = None, {}
         if m.idx.size < max(8, self.cfg.geometry.min_inliers):
             sol = failed_solution(kf.T_world_cam, self.T_world_last, f"only {m.idx.size} reliable flow matches")
@@ -148,7 +148,7 @@ class Odometry:
         sol = self.front.two_view_to_depth(kf, ref, self._reference(cur, tm), m, R_rot, tm)
         return (sol if sol.tracks is not None else replace(sol, tracks=Tracks.empty())), ref
 
-    def _compute_ahead(self, ref_prepared, prepared, next_image: np.ndarray | None) -> None:
+    def _compute_ahead(self, ref_prepared, next_image: np.ndarray | None) -> None:
         """Start the flow ``ref_prepared -> next frame`` in the background, if the source can."""
         speculate = getattr(self.flow, "speculate", None)
         if speculate is None or next_image is None:

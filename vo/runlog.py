@@ -4,10 +4,10 @@ Messages go to the standard :mod:`logging` logger ``trianflow_vo`` (the CLI sets
 its level with ``-v``/``-q``). Routine behaviour (a PnP step on small parallax, a
 held keyframe, a static camera) is logged at INFO. A warning names its kind
 (``skipped-frame``, ``rotation-only``, ``failed-frame``, ``scale-fallback``,
-``backend-failed``, ``backend-rejected``, ``depth-contradicted``, ``observer``,
-``plot``); per-frame kinds are logged at INFO as they happen and summarised once
-per kind at the end (WARNING), while a skipped frame is a WARNING at once, naming
-its file. Every warning is kept, with its count, for ``run.json``.
+``backend-failed``, ``backend-rejected``, ``backend-worker``, ``depth-contradicted``,
+``observer``, ``close``, ``plot``); per-frame kinds are logged at INFO as they happen
+and summarised once per kind at the end (WARNING), while a skipped frame is a
+WARNING at once, naming its file. Every warning is kept, with its count, for ``run.json``.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Flow computed ahead: the next frame's flow in a background thread (``flow.speculate``).
+"""Flow computed ahead: the next frame's flow in a background thread (``flow.ahead``).
 
 While the current frame's geometry is solved (NumPy and OpenCV on the main
 thread), the flow the *next* frame will most likely need is computed in a thread
@@ -27,16 +27,15 @@ class _Guess:
 
     def __init__(self, source: FlowSource, a: Any, b: Any):
         self.a, self.b = a, b
-        self.result: tuple[np.ndarray, np.ndarray] | None = None
-        self.error: BaseException | None = None
+        self.result: tuple[np.ndarray, np.ndarray] | None = None  # None: failed, the main thread tries itself
         self._thread = threading.Thread(target=self._run, args=(source,), name="flow-ahead", daemon=True)
         self._thread.start()
 
     def _run(self, source: FlowSource) -> None:
         try:
             self.result = source.flow_pair(self.a, self.b)
-        except BaseException as exc:  # the main thread computes the pair itself and meets the error there
-            self.error = exc
+        except BaseException:  # the main thread computes the pair itself and meets the error there
+            pass
 
     def join(self) -> None:
         self._thread.join()
