@@ -30,7 +30,8 @@ def _project(T_world_cam, X):
 def scene():
     rng = np.random.default_rng(3)
     X = np.c_[rng.uniform(-4, 4, 300), rng.uniform(-3, 3, 300), rng.uniform(6, 20, 300)]
-    poses = [_pose([0, 0.0, 0], [0, 0, 0]), _pose([0, 0.02, 0], [0.1, 0, 1.0]), _pose([0, 0.04, 0.01], [0.25, 0.05, 2.1])]
+    poses = [_pose([0, 0.0, 0], [0, 0, 0]), _pose([0, 0.02, 0], [0.1, 0, 1.0]),
+             _pose([0, 0.04, 0.01], [0.25, 0.05, 2.1])]
     return X, poses, [_project(T, X) for T in poses]
 
 
