@@ -84,10 +84,13 @@ def main(argv=None) -> int:
         s, (frames, table) = _score(args.sequence, run, gt)
         out[str(run)] = s
         g, r = s["gt"], s["run"]
-        print(f"{str(run)[-40:]:40s} {g['epipolar_px_median']:7.3f} / {r['epipolar_px_median']:6.3f} "
-              f"{g['scale_abs_log_median']:9.4f} / {r['scale_abs_log_median']:6.4f} "
-              f"{g['scale_log_std']:8.4f} / {r['scale_log_std']:6.4f} "
-              f"{s['gt_worse_pairs']:>13s}, {s['gt_worse_triples']}")
+
+        def both(key: str, width: int, digits: int) -> str:  # 'gt / run', '-' where there is no value
+            fmt = (lambda v: "-" if v is None else f"{v:.{digits}f}")  # noqa: E731
+            return f"{fmt(g[key]):>{width}s} / {fmt(r[key]):>6s}"
+
+        print(f"{str(run)[-40:]:40s} {both('epipolar_px_median', 7, 3)} {both('scale_abs_log_median', 9, 4)} "
+              f"{both('scale_log_std', 8, 4)} {s['gt_worse_pairs']:>13s}, {s['gt_worse_triples']}")
         if args.per_pair:
             for (i, j), eg, er in zip(table.pairs, table.epipolar_px["gt"], table.epipolar_px["run"]):
                 line = f"  frames {frames[i]:5d}-{frames[j]:5d}  epi gt {eg:.3f} run {er:.3f}"

@@ -220,8 +220,7 @@ def consistency_table(read_gray, K: np.ndarray, trajectories: dict, matcher: Sif
         for k, T in arrs.items():
             epi[k][b - 1], _ = epipolar_residual(K, T[b - 1], T[b], pa[ia], pb[ib], cap_px=cap_px)
         if prev is not None:  # the triple (b-2, b-1, b): keypoints of b-1 matched both ways
-            back = prev
-            common = [(back[j], j, i) for j, i in zip(ia.tolist(), ib.tolist()) if j in back]
+            common = [(prev[j], j, i) for j, i in zip(ia.tolist(), ib.tolist()) if j in prev]
             if len(common) >= MIN_MATCHES:
                 i0, i1, i2 = (np.array(c, dtype=np.int64) for c in zip(*common))
                 p0 = feats(b - 2)[0]
