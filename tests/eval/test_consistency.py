@@ -110,11 +110,12 @@ def test_sift_matcher_finds_a_known_shift():
     big = _texture(300, 400)
     a, b = big[20:260, 20:340], big[23:263, 15:335]  # a texture point at a's (u, v) is at b's (u + 5, v - 3)
     m = SiftMatcher(n_features=500)
-    (pa, da), (pb, db) = m.features("a", a), m.features("b", b)
+    (pa, da), (pb, db) = m.features("a", lambda: a), m.features("b", lambda: b)
     ia, ib = m.match(da, db)
     assert ia.size > 50
     d = np.median(pa[ia] - pb[ib], axis=0)
     assert d == pytest.approx([-5.0, 3.0], abs=0.05)
+    assert m.features("a", lambda: pytest.fail("a cached image is read again"))[0] is pa
     m.forget({"b"})
     assert "a" not in m._cache and "b" in m._cache
 

@@ -136,10 +136,11 @@ class SiftMatcher:
         self.ratio = float(ratio)
         self._cache: dict = {}
 
-    def features(self, key, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """``(pixels (N, 2), descriptors)`` of ``gray`` ``(h, w)`` uint8, computed once per ``key``."""
+    def features(self, key, read_gray) -> tuple[np.ndarray, np.ndarray | None]:
+        """``(pixels (N, 2), descriptors)`` of the image ``read_gray() -> (h, w) uint8``, computed once
+        per ``key`` (the image is read only when ``key`` is not cached)."""
         if key not in self._cache:
-            kps, desc = self._sift.detectAndCompute(np.ascontiguousarray(gray), None)
+            kps, desc = self._sift.detectAndCompute(np.ascontiguousarray(read_gray()), None)
             self._cache[key] = (np.array([k.pt for k in kps], dtype=np.float64).reshape(-1, 2), desc)
         return self._cache[key]
 
@@ -210,7 +211,7 @@ def consistency_table(read_gray, K: np.ndarray, trajectories: dict, matcher: Sif
         if v.ndim != 3 or v.shape[1:] != (4, 4) or v.shape[0] != n or n < 2:
             raise ValueError(f"trajectory {k!r} must be (N, 4, 4) with the same N >= 2 as the others, got {v.shape}")
     matcher = matcher or SiftMatcher()
-    feats = lambda i: matcher.features(i, read_gray(i))  # noqa: E731
+    feats = lambda i: matcher.features(i, lambda: read_gray(i))  # noqa: E731
     epi = {k: np.full(n - 1, np.nan) for k in arrs}
     scl = {k: np.full(max(n - 2, 0), np.nan) for k in arrs}
     prev = None  # matches (b-1 -> b) as a dict b-keypoint -> (b-1)-keypoint
