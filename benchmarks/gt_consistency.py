@@ -36,12 +36,33 @@ from pathlib import Path
 import numpy as np
 
 
-def _score(seq_dir: Path, run_dir: Path, gt_path: Path) -> tuple[dict, object]:
+def gray_reader(seq, seq_dir: Path, frames):
+    """``read_gray(position) -> (h, w) uint8``: source frame ``frames[position]`` of the opened
+    sequence ``seq`` in grey (exits naming the frame when it does not decode)."""
     import cv2
 
+    from trianflow_vo.frames import Frame
+
+    def read_gray(i: int) -> np.ndarray:
+        fr = seq.read_frame(int(frames[i]))
+        if not isinstance(fr, Frame):
+            raise SystemExit(f"{seq_dir}: frame {frames[i]} does not decode")
+        img = fr.image
+        return img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+
+    return read_gray
+
+
+def write_json(path: Path | None, obj) -> None:
+    """``obj`` as indented JSON at ``path`` (its folder made); nothing when ``path`` is None."""
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(obj, indent=1))
+
+
+def _score(seq_dir: Path, run_dir: Path, gt_path: Path) -> tuple[dict, object]:
     from trianflow_vo.eval.consistency import consistency_table
     from trianflow_vo.eval.loader import associate, load_ground_truth, load_prediction
-    from trianflow_vo.frames import Frame
     from trianflow_vo.io.sequence import open_sequence
 
     pred, desc = load_prediction(run_dir)
@@ -49,15 +70,7 @@ def _score(seq_dir: Path, run_dir: Path, gt_path: Path) -> tuple[dict, object]:
     if a.frames is None:
         raise SystemExit(f"{run_dir}: matched by timestamp; this tool needs frame indices (frames.txt)")
     seq = open_sequence(seq_dir)
-
-    def read_gray(i: int) -> np.ndarray:
-        fr = seq.read_frame(int(a.frames[i]))
-        if not isinstance(fr, Frame):
-            raise SystemExit(f"{seq_dir}: frame {a.frames[i]} does not decode")
-        img = fr.image
-        return img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-
-    table = consistency_table(read_gray, seq.K, {"gt": a.gt_poses, "run": a.pred_poses})
+    table = consistency_table(gray_reader(seq, seq_dir, a.frames), seq.K, {"gt": a.gt_poses, "run": a.pred_poses})
     summary = table.summary()
     for key, arrs in (("pairs", table.epipolar_px), ("triples", table.scale_log_ratio)):
         g, r = arrs["gt"], arrs["run"]
@@ -98,9 +111,7 @@ def main(argv=None) -> int:
                     line += (f"   log s at {frames[j]:5d}: gt {table.scale_log_ratio['gt'][j - 1]:+.4f} "
                              f"run {table.scale_log_ratio['run'][j - 1]:+.4f}")
                 print(line)
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(out, indent=1))
+    write_json(args.json, out)
     return 0
 
 

@@ -59,3 +59,44 @@ def winding(n: int, seed: int = 0) -> np.ndarray:
         S[:3, 3] = (rng.normal(0, 0.05), rng.normal(0, 0.02), 1.0)
         out.append(out[-1] @ S)
     return np.stack(out)
+
+
+def noise_texture(h: int, w: int, seed: int = 0) -> np.ndarray:
+    """``(h, w)`` uint8 blurred uniform noise stretched to 0-255: texture SIFT and flow can match."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.uniform(0, 255, (h, w)).astype(np.float32), (0, 0), 2.0)
+    return ((img - img.min()) / (img.max() - img.min()) * 255).astype(np.uint8)
+
+
+def plane_point(u, v):
+    """World points ``(N, 3)`` of texture pixels ``(u, v)`` of an 800 x 600 texture laid on the slanted
+    plane ``z = 12 + 4 (x + 6) / 12``, ``-6 <= x <= 6``, ``-4.5 <= y <= 4.5``."""
+    u, v = np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64)
+    return np.c_[-6 + 12 * u / 800, -4.5 + 9 * v / 600, 12 + 4 * u / 800]
+
+
+def render_plane(tex: np.ndarray, T_world_cam: np.ndarray, K: np.ndarray, size_wh=(640, 480)) -> np.ndarray:
+    """The 800 x 600 texture ``tex`` on the plane of :func:`plane_point` seen from ``T_world_cam``
+    ``(4, 4)`` with intrinsics ``K``, rendered through the plane's homography."""
+    import cv2
+
+    corners = np.array([[0, 0], [800, 0], [800, 600], [0, 600]], dtype=np.float64)
+    Xc = (plane_point(corners[:, 0], corners[:, 1]) - T_world_cam[:3, 3]) @ T_world_cam[:3, :3]
+    uv = project(K, Xc)
+    H = cv2.getPerspectiveTransform(corners.astype(np.float32), uv.astype(np.float32))
+    return cv2.warpPerspective(tex, H, tuple(size_wh))
+
+
+def pose(rvec, t) -> np.ndarray:
+    """``(4, 4)`` T_world_cam of a camera rotated by ``rvec`` (axis-angle) at world position ``t``."""
+    T = np.eye(4)
+    T[:3, :3] = rodrigues(np.asarray(rvec, dtype=np.float64))
+    T[:3, 3] = np.asarray(t, dtype=np.float64)
+    return T
+
+
+def project_world(K, T_world_cam, X) -> np.ndarray:
+    """``(N, 2)`` pixels of world points ``X`` ``(N, 3)`` seen from ``T_world_cam`` ``(4, 4)``."""
+    return project(K, (X - T_world_cam[:3, 3]) @ T_world_cam[:3, :3])

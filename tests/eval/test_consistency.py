@@ -10,29 +10,20 @@ from trianflow_vo.eval.consistency import (
     epipolar_residual,
     step_scale_log_ratio,
 )
-from trianflow_vo.geometry.se3 import make_T, rodrigues
+from synthetic import noise_texture, pose, project_world, render_plane
+
+from trianflow_vo.geometry.se3 import rodrigues
 
 K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
-
-
-def _pose(rvec, t):
-    """T_world_cam of a camera rotated by ``rvec`` at world position ``t``."""
-    return make_T(rodrigues(np.asarray(rvec, dtype=np.float64)), np.asarray(t, dtype=np.float64))
-
-
-def _project(T_world_cam, X):
-    Xc = (X - T_world_cam[:3, 3]) @ T_world_cam[:3, :3]
-    uv = Xc @ K.T
-    return uv[:, :2] / uv[:, 2:3]
 
 
 @pytest.fixture
 def scene():
     rng = np.random.default_rng(3)
     X = np.c_[rng.uniform(-4, 4, 300), rng.uniform(-3, 3, 300), rng.uniform(6, 20, 300)]
-    poses = [_pose([0, 0.0, 0], [0, 0, 0]), _pose([0, 0.02, 0], [0.1, 0, 1.0]),
-             _pose([0, 0.04, 0.01], [0.25, 0.05, 2.1])]
-    return X, poses, [_project(T, X) for T in poses]
+    poses = [pose([0, 0.0, 0], [0, 0, 0]), pose([0, 0.02, 0], [0.1, 0, 1.0]),
+             pose([0, 0.04, 0.01], [0.25, 0.05, 2.1])]
+    return X, poses, [project_world(K, T, X) for T in poses]
 
 
 def test_epipolar_residual_zero_for_the_true_poses_and_grows_with_a_rotation_error(scene):
@@ -97,17 +88,8 @@ def test_bad_shapes_raise(scene):
         consistency_table(lambda i: None, K, {"x": np.zeros((1, 4, 4))})
 
 
-def _texture(h=240, w=320, seed=0):
-    import cv2
-
-    rng = np.random.default_rng(seed)
-    img = cv2.GaussianBlur(rng.uniform(0, 255, (h, w)).astype(np.float32), (0, 0), 2.0)
-    img = (img - img.min()) / (img.max() - img.min()) * 255
-    return img.astype(np.uint8)
-
-
 def test_sift_matcher_finds_a_known_shift():
-    big = _texture(300, 400)
+    big = noise_texture(300, 400)
     a, b = big[20:260, 20:340], big[23:263, 15:335]  # a texture point at a's (u, v) is at b's (u + 5, v - 3)
     m = SiftMatcher(n_features=500)
     (pa, da), (pb, db) = m.features("a", lambda: a), m.features("b", lambda: b)
@@ -122,19 +104,10 @@ def test_sift_matcher_finds_a_known_shift():
 
 def test_consistency_table_prefers_the_true_trajectory_over_a_perturbed_one():
     """Rendered frames of a textured plane: the true poses fit, a trajectory with a wrong step does not."""
-    import cv2
-
-    tex = _texture(600, 800, seed=1)
+    tex = noise_texture(600, 800, seed=1)
     n = 5
-    truth = np.stack([_pose([0, 0.01 * i, 0], [0.3 * i, 0.0, 0.5 * i]) for i in range(n)])
-    # a slanted textured plane in the world; each frame rendered by the plane's homography
-    plane_pts = lambda u, v: np.c_[-6 + 12 * u / 800, -4.5 + 9 * v / 600, 12 + 4 * u / 800]  # noqa: E731
-    corners = np.array([[0, 0], [800, 0], [800, 600], [0, 600]], dtype=np.float64)
-    frames = []
-    for T in truth:
-        uv = _project(T, plane_pts(corners[:, 0], corners[:, 1]))
-        H = cv2.getPerspectiveTransform(corners.astype(np.float32), uv.astype(np.float32))
-        frames.append(cv2.warpPerspective(tex, H, (640, 480)))
+    truth = np.stack([pose([0, 0.01 * i, 0], [0.3 * i, 0.0, 0.5 * i]) for i in range(n)])
+    frames = [render_plane(tex, T, K) for T in truth]  # a slanted textured plane
     bad = truth.copy()
     bad[2:, :3, 3] += (bad[2:, :3, 3] - bad[1, :3, 3]) * 0.1  # every step from frame 1 on 10 % longer
     bad[3][:3, :3] = bad[3][:3, :3] @ rodrigues(np.array([0.0, 0.0, np.radians(0.5)]))
