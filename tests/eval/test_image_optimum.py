@@ -10,7 +10,9 @@ from trianflow_vo.eval.image_optimum import (
     Observations,
     image_optimum,
     link_tracks,
+    sift_matches,
     sift_tracks,
+    tracks_from_matches,
     triangulate_tracks,
 )
 from trianflow_vo.geometry.se3 import rodrigues
@@ -200,3 +202,9 @@ def test_sift_tracks_on_rendered_frames_span_several_frames_and_fit_the_true_pos
     assert np.median(np.abs(X[:, 2] - (12 + 4 * (X[:, 0] + 6) / 12))) < 0.05
     with pytest.raises(ValueError, match="overlap"):
         sift_tracks(lambda i: frames[i], K, truth, overlap=0)
+    # the matches do not depend on the poses: built once, filtered for any trajectory of those frames
+    m = sift_matches(lambda i: frames[i], n, overlap=3)
+    again = tracks_from_matches(K, truth, m)
+    np.testing.assert_array_equal(again.uv, obs.uv)
+    with pytest.raises(ValueError, match="4 poses for 5 frames"):
+        tracks_from_matches(K, truth[:4], m)

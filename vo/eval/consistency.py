@@ -59,6 +59,25 @@ def _relative(T_world_a: np.ndarray, T_world_b: np.ndarray) -> tuple[np.ndarray,
     return T_b_a[:3, :3], T_b_a[:3, 3]
 
 
+def sampson_under_poses(K: np.ndarray, T_world_a: np.ndarray, T_world_b: np.ndarray, pts_a: np.ndarray,
+                        pts_b: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Sampson distances (pixels) of matches ``a -> b`` under the fundamental matrix of the poses.
+
+    Args:
+        K: ``(3, 3)`` intrinsics.
+        T_world_a, T_world_b: ``(4, 4)`` poses of the two frames.
+        pts_a, pts_b: ``(N, 2)`` matched pixels.
+
+    Returns:
+        ``(d (N,), valid)``; ``valid`` is False (``d`` all NaN) when the frames do not move apart.
+    """
+    R, t = _relative(_check_T("T_world_a", T_world_a), _check_T("T_world_b", T_world_b))
+    n = float(np.linalg.norm(t))
+    if n < 1e-12:
+        return np.full(np.asarray(pts_a).shape[0], np.nan), False
+    return sampson_distance(fundamental_from_pose(R, t / n, np.asarray(K, dtype=np.float64)), pts_a, pts_b), True
+
+
 def epipolar_residual(K: np.ndarray, T_world_a: np.ndarray, T_world_b: np.ndarray, pts_a: np.ndarray,
                       pts_b: np.ndarray, cap_px: float = 3.0) -> tuple[float, bool]:
     """Median Sampson distance (pixels) of matches ``a -> b`` under the poses' fundamental matrix.
@@ -74,11 +93,9 @@ def epipolar_residual(K: np.ndarray, T_world_a: np.ndarray, T_world_b: np.ndarra
         (no epipolar geometry) or fewer than ``MIN_MATCHES`` matches are under the cap.
     """
     pts_a, pts_b = _check_pts(pts_a=pts_a, pts_b=pts_b)
-    R, t = _relative(_check_T("T_world_a", T_world_a), _check_T("T_world_b", T_world_b))
-    n = float(np.linalg.norm(t))
-    if n < 1e-12:
+    d, moved = sampson_under_poses(K, T_world_a, T_world_b, pts_a, pts_b)
+    if not moved:
         return float("nan"), False
-    d = sampson_distance(fundamental_from_pose(R, t / n, np.asarray(K, dtype=np.float64)), pts_a, pts_b)
     d = d[d < cap_px]
     if d.size < MIN_MATCHES:
         return float("nan"), False
@@ -130,7 +147,6 @@ class SiftMatcher:
     def __init__(self, n_features: int = 4000, ratio: float = 0.7):
         import cv2
 
-        self._cv2 = cv2
         self._sift = cv2.SIFT_create(int(n_features))
         self._bf = cv2.BFMatcher()
         self.ratio = float(ratio)

@@ -15,8 +15,9 @@ Pieces:
 
 * :func:`link_tracks`: union-find of pairwise keypoint matches into tracks (a track with
   two keypoints in one frame is dropped);
-* :func:`sift_tracks`: SIFT matches of each frame with the next ``overlap`` frames that
-  fit the trajectory's epipolar geometry (Sampson distance < ``epi_px``), linked;
+* :func:`sift_tracks`: SIFT matches of each frame with the next ``overlap`` frames
+  (:func:`sift_matches`, independent of any trajectory) that fit the trajectory's epipolar
+  geometry (Sampson distance < ``epi_px``), linked (:func:`tracks_from_matches`);
 * :func:`triangulate_tracks`: linear triangulation of each track from all its
   observations; observations that reproject worse than ``max_px`` are dropped;
 * :func:`image_optimum`: ``rounds`` times triangulate, then Levenberg-Marquardt on all
@@ -33,9 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from trianflow_vo.geometry.epipolar import sampson_distance
-from trianflow_vo.geometry.fundamental import fundamental_from_pose
-from trianflow_vo.geometry.se3 import invert_T
+from trianflow_vo.eval.consistency import SiftMatcher, sampson_under_poses
 
 HOLD_SIGMA = 1e-4  # the gauge's priors (radians; a fraction of the held distance): effectively constants
 
@@ -108,50 +107,83 @@ def link_tracks(n_keypoints: list[int], matches: list[tuple[int, int, np.ndarray
     return frame_of[keep], kp_of[keep], track.astype(np.int64).reshape(-1)
 
 
+@dataclass(frozen=True)
+class SiftMatches:
+    """Ratio-test SIFT matches of each frame with the next ``overlap`` frames, before any geometry.
+
+    Attributes:
+        pts: per frame, ``(K_i, 2)`` keypoint pixels.
+        pairs: ``(a, b, ia (P,), ib (P,))``: keypoint ``ia[p]`` of frame ``a`` matches ``ib[p]`` of ``b``.
+    """
+
+    pts: list
+    pairs: list
+
+
+def sift_matches(read_gray, n_frames: int, overlap: int = 5, matcher=None) -> SiftMatches:
+    """SIFT keypoints of ``n_frames`` frames and the matches of each with the next ``overlap``.
+
+    Args:
+        read_gray: ``read_gray(position) -> (h, w) uint8`` image of the frame at that position.
+        overlap: each frame is matched with the next ``overlap`` frames.
+        matcher: a :class:`~trianflow_vo.eval.consistency.SiftMatcher` (default: 4000 features, ratio 0.75).
+            Descriptors are kept only for the frames still to be matched.
+    """
+    if overlap < 1:
+        raise ValueError(f"overlap must be >= 1, got {overlap}")
+    matcher = matcher or SiftMatcher(ratio=0.75)
+    feats = (lambda i: matcher.features(i, lambda: read_gray(i)))  # noqa: E731
+    pts, pairs = [], []
+    for a in range(int(n_frames)):
+        pa, da = feats(a)
+        pts.append(pa)
+        for b in range(a + 1, min(int(n_frames), a + overlap + 1)):
+            ia, ib = matcher.match(da, feats(b)[1])
+            if ia.size:
+                pairs.append((a, b, ia, ib))
+        matcher.forget(set(range(a + 1, a + overlap + 1)))
+    return SiftMatches(pts, pairs)
+
+
+def tracks_from_matches(K: np.ndarray, T_world_cam: np.ndarray, matches: SiftMatches,
+                        epi_px: float = 1.5) -> Observations:
+    """Tracks of the matches that fit the trajectory's epipolar geometry (Sampson distance below
+    ``epi_px`` under each pair's relative pose), linked by :func:`link_tracks`.
+
+    Args:
+        K: ``(3, 3)`` intrinsics at the images' resolution.
+        T_world_cam: ``(N, 4, 4)`` poses of the frames of ``matches``.
+    """
+    T = _check_poses(T_world_cam)
+    if T.shape[0] != len(matches.pts):
+        raise ValueError(f"T_world_cam has {T.shape[0]} poses for {len(matches.pts)} frames of matches")
+    fitting = []
+    for a, b, ia, ib in matches.pairs:
+        d, moved = sampson_under_poses(K, T[a], T[b], matches.pts[a][ia], matches.pts[b][ib])
+        if moved:
+            ok = d < epi_px
+            fitting.append((a, b, ia[ok], ib[ok]))
+    frame, kp, track = link_tracks([p.shape[0] for p in matches.pts], fitting)
+    uv = np.zeros((frame.size, 2))
+    for i, p in enumerate(matches.pts):
+        sel = frame == i
+        uv[sel] = p[kp[sel]]
+    return Observations(frame, track, uv)
+
+
 def sift_tracks(read_gray, K: np.ndarray, T_world_cam: np.ndarray, overlap: int = 5, epi_px: float = 1.5,
                 matcher=None) -> Observations:
-    """SIFT tracks over a trajectory's frames.
+    """SIFT tracks over a trajectory's frames: :func:`sift_matches` then :func:`tracks_from_matches`.
 
     Args:
         read_gray: ``read_gray(position) -> (h, w) uint8`` image of the frame at that position.
         K: ``(3, 3)`` intrinsics at the images' resolution.
         T_world_cam: ``(N, 4, 4)`` poses of the frames; they pick the matches that fit (its
             epipolar geometry, Sampson distance below ``epi_px``).
-        overlap: each frame is matched with the next ``overlap`` frames.
-        matcher: a :class:`~trianflow_vo.eval.consistency.SiftMatcher` (default: 4000 features, ratio 0.75).
+        overlap, matcher: see :func:`sift_matches`.
     """
-    from trianflow_vo.eval.consistency import SiftMatcher
-
     T = _check_poses(T_world_cam)
-    if overlap < 1:
-        raise ValueError(f"overlap must be >= 1, got {overlap}")
-    matcher = matcher or SiftMatcher(ratio=0.75)
-    n = T.shape[0]
-    feats = (lambda i: matcher.features(i, lambda: read_gray(i)))  # noqa: E731
-    pts = []  # keypoint pixels of every frame (descriptors are kept for the next `overlap` frames only)
-    matches = []
-    for a in range(n):
-        pa, da = feats(a)
-        pts.append(pa)
-        for b in range(a + 1, min(n, a + overlap + 1)):
-            pb, db = feats(b)
-            ia, ib = matcher.match(da, db)
-            if ia.size == 0:
-                continue
-            T_b_a = invert_T(T[b]) @ T[a]
-            tn = float(np.linalg.norm(T_b_a[:3, 3]))
-            if tn < 1e-12:
-                continue
-            F = fundamental_from_pose(T_b_a[:3, :3], T_b_a[:3, 3] / tn, K)
-            ok = sampson_distance(F, pa[ia], pb[ib]) < epi_px
-            matches.append((a, b, ia[ok], ib[ok]))
-        matcher.forget(set(range(a + 1, a + overlap + 1)))
-    frame, kp, track = link_tracks([p.shape[0] for p in pts], matches)
-    uv = np.zeros((frame.size, 2))
-    for i in range(n):
-        sel = frame == i
-        uv[sel] = pts[i][kp[sel]]
-    return Observations(frame, track, uv)
+    return tracks_from_matches(K, T, sift_matches(read_gray, T.shape[0], overlap, matcher), epi_px)
 
 
 def _check_poses(T_world_cam: np.ndarray) -> np.ndarray:
@@ -272,6 +304,9 @@ def image_optimum(K: np.ndarray, T_world_cam: np.ndarray, obs: Observations, rou
     cal = gtsam.Cal3_S2(float(K[0, 0]), float(K[1, 1]), float(K[0, 1]), float(K[0, 2]), float(K[1, 2]))
     noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(float(huber_px)),
                                            gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
+    # the gauge: the first pose (radians, trajectory units) and the distance to frame j
+    hold_pose = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, HOLD_SIGMA), np.full(3, HOLD_SIGMA * step)])
+    hold_range = gtsam.noiseModel.Isotropic.Sigma(1, HOLD_SIGMA * step)
     Xk, Lk = gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.L
     before, after = [], []
     kept = None
@@ -288,9 +323,8 @@ def image_optimum(K: np.ndarray, T_world_cam: np.ndarray, obs: Observations, rou
         values = gtsam.Values()
         for i in range(T.shape[0]):
             values.insert(Xk(i), gtsam.Pose3(T[i]))
-        hold = np.r_[np.full(3, HOLD_SIGMA), np.full(3, HOLD_SIGMA * step)]  # radians, trajectory units
-        graph.add(gtsam.PriorFactorPose3(Xk(0), gtsam.Pose3(T[0]), gtsam.noiseModel.Diagonal.Sigmas(hold)))
-        graph.add(gtsam.RangeFactorPose3(Xk(0), Xk(j), step, gtsam.noiseModel.Isotropic.Sigma(1, HOLD_SIGMA * step)))
+        graph.add(gtsam.PriorFactorPose3(Xk(0), gtsam.Pose3(T[0]), hold_pose))
+        graph.add(gtsam.RangeFactorPose3(Xk(0), Xk(j), step, hold_range))
         for q in range(pts.shape[0]):
             values.insert(Lk(q), pts[q])
         for f, t, p in zip(sub.frame.tolist(), sub.track.tolist(), sub.uv):
