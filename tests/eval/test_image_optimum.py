@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 from synthetic import noise_texture, pose, project_world, render_plane
 
+from trianflow_vo.ba.graph import project
 from trianflow_vo.eval.align import umeyama
 from trianflow_vo.eval.image_optimum import (
     Observations,
@@ -95,9 +96,7 @@ def test_triangulate_tracks_recovers_the_points_and_drops_a_shifted_observation(
     _, keep3 = triangulate_tracks(K, truth, Observations(obs.frame, obs.track, uv))
     assert not keep3[rows].any() and keep3.sum() == keep3.size - 2
     # every point reprojects exactly into the true poses
-    from trianflow_vo.eval.image_optimum import _project as proj
-
-    p, front = proj(K, truth[obs.frame], Xt[obs.track])
+    p, front = project(K, truth[obs.frame], Xt[obs.track])
     assert front.all() and np.abs(p - obs.uv).max() < 1e-6
 
 

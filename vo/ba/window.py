@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from trianflow_vo.ba.graph import add_reprojection_factors, levenberg_marquardt, project
+
 # prior on the fixed keyframes: effectively a constant (radians and trajectory units)
 FIXED_SIGMA = 1e-6
 
@@ -46,11 +48,6 @@ class WindowSolution:
     notes: list[str] = field(default_factory=list)
 
 
-def _world_to_cam(T_world_cam: np.ndarray, X: np.ndarray) -> np.ndarray:
-    R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
-    return (X - t) @ R
-
-
 def select_observations(poses: dict[int, np.ndarray], obs: dict[int, tuple[np.ndarray, np.ndarray]],
                         landmarks: dict[int, np.ndarray], fixed: set[int], min_depth: float = 1e-6):
     """The observations the window can use.
@@ -71,7 +68,7 @@ def select_observations(poses: dict[int, np.ndarray], obs: dict[int, tuple[np.nd
             continue
         ids_k, pts_k = ids[known], pts[known]
         X = np.stack([landmarks[t] for t in ids_k.tolist()])
-        front = _world_to_cam(poses[kf], X)[:, 2] > min_depth
+        front = ((X - poses[kf][:3, 3]) @ poses[kf][:3, :3])[:, 2] > min_depth
         kfs.append(np.full(int(front.sum()), kf, dtype=np.int64))
         tids.append(ids_k[front])
         uvs.append(pts_k[front])
@@ -92,14 +89,8 @@ def reprojection_errors(K: np.ndarray, poses: dict[int, np.ndarray], landmarks: 
     err = np.full(kf.size, np.inf)
     for k in np.unique(kf).tolist():
         sel = np.flatnonzero(kf == k)
-        X = np.stack([landmarks[t] for t in tid[sel].tolist()])
-        Xc = _world_to_cam(poses[k], X)
-        z = Xc[:, 2]
-        ok = z > 1e-9
-        p = (Xc[ok] @ K.T)[:, :2] / z[ok, None]
-        e = np.full(sel.size, np.inf)
-        e[ok] = np.linalg.norm(p - uv[sel][ok], axis=1)
-        err[sel] = e
+        p, _ = project(K, poses[k], np.stack([landmarks[t] for t in tid[sel].tolist()]))
+        err[sel] = np.linalg.norm(p - uv[sel], axis=1)
     return err
 
 
@@ -137,9 +128,6 @@ def solve_window(K: np.ndarray, poses: dict[int, np.ndarray], fixed: set[int],
         return None, False
     import gtsam
 
-    cal = gtsam.Cal3_S2(float(K[0, 0]), float(K[1, 1]), float(K[0, 1]), float(K[0, 2]), float(K[1, 2]))
-    noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(float(huber_px)),
-                                           gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
     hold = gtsam.noiseModel.Isotropic.Sigma(6, FIXED_SIGMA)
     X, L = gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.L
     graph = gtsam.NonlinearFactorGraph()
@@ -150,8 +138,7 @@ def solve_window(K: np.ndarray, poses: dict[int, np.ndarray], fixed: set[int],
             graph.add(gtsam.PriorFactorPose3(X(k), gtsam.Pose3(np.asarray(T, dtype=np.float64)), hold))
     for t in points.tolist():
         values.insert(L(t), np.asarray(landmarks[t], dtype=np.float64))
-    for k, t, p in zip(kf.tolist(), tid.tolist(), uv):
-        graph.add(gtsam.GenericProjectionFactorCal3_S2(p, noise, X(k), L(t), cal))
+    add_reprojection_factors(graph, K, kf, tid, uv, huber_px, X, L)
     for k, step in (steps or {}).items():
         ref, T_ref_k = step[0], step[1]
         if k in poses and ref in poses:
@@ -160,17 +147,11 @@ def solve_window(K: np.ndarray, poses: dict[int, np.ndarray], fixed: set[int],
             sig = np.array([step_rot_sigma] * 3 + [max(t_sigma, 1e-6)] * 3)
             graph.add(gtsam.BetweenFactorPose3(X(ref), X(k), gtsam.Pose3(np.asarray(T_ref_k, dtype=np.float64)),
                                                gtsam.noiseModel.Diagonal.Sigmas(sig)))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(int(max_iterations))
-    try:
-        e0 = graph.error(values)
-        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-        result = opt.optimize()
-        e1 = graph.error(result)
-        iters = int(opt.iterations())
-    except RuntimeError:  # IndeterminantLinearSystemException and friends
+    solved, ok = levenberg_marquardt(graph, values, max_iterations)
+    if not ok:
         return None, False
-    if not (np.isfinite(e1) and e1 <= e0):
+    result, e0, e1, iters = solved
+    if not e1 <= e0:
         return None, False
     new_poses = {k: np.asarray(result.atPose3(X(k)).matrix(), dtype=np.float64) for k in poses}
     new_points = {t: np.asarray(result.atPoint3(L(t)), dtype=np.float64) for t in points.tolist()}

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from trianflow_vo.ba.graph import add_reprojection_factors, levenberg_marquardt, project
 from trianflow_vo.eval.consistency import SiftMatcher, sampson_under_poses
 
 HOLD_SIGMA = 1e-4  # the gauge's priors (radians; a fraction of the held distance): effectively constants
@@ -193,16 +194,6 @@ def _check_poses(T_world_cam: np.ndarray) -> np.ndarray:
     return T
 
 
-def _project(K: np.ndarray, T_world_cam: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(uv (M, 2), in_front (M,))`` of points ``X`` ``(M, 3)`` in cameras ``T_world_cam`` ``(M, 4, 4)``."""
-    Xc = np.einsum("mji,mj->mi", T_world_cam[:, :3, :3], X - T_world_cam[:, :3, 3])
-    z = Xc[:, 2]
-    front = z > 1e-9
-    uv = np.full((X.shape[0], 2), np.inf)
-    uv[front] = (Xc[front] @ K.T)[:, :2] / z[front, None]
-    return uv, front
-
-
 def triangulate_tracks(K: np.ndarray, T_world_cam: np.ndarray, obs: Observations,
                        max_px: float = 2.0, min_angle_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Linear (DLT) triangulation of each track from all its observations.
@@ -228,7 +219,7 @@ def triangulate_tracks(K: np.ndarray, T_world_cam: np.ndarray, obs: Observations
     good = np.abs(w) > 1e-12
     X = np.zeros((n_tracks, 3))
     X[good] = Xh[good, :3] / w[good, None]
-    uv, front = _project(K, T[obs.frame], X[obs.track])
+    uv, front = project(K, T[obs.frame], X[obs.track])
     keep = good[obs.track] & front & (np.linalg.norm(uv - obs.uv, axis=1) < max_px)
     count = np.bincount(obs.track[keep], minlength=n_tracks)
     keep &= count[obs.track] >= 2
@@ -301,9 +292,6 @@ def image_optimum(K: np.ndarray, T_world_cam: np.ndarray, obs: Observations, rou
     step = float(dist[j])
     if not step > 0:
         raise ValueError("all poses have the same camera centre: nothing can hold the scale")
-    cal = gtsam.Cal3_S2(float(K[0, 0]), float(K[1, 1]), float(K[0, 1]), float(K[0, 2]), float(K[1, 2]))
-    noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(float(huber_px)),
-                                           gtsam.noiseModel.Isotropic.Sigma(2, 1.0))
     # the gauge: the first pose (radians, trajectory units) and the distance to frame j
     hold_pose = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, HOLD_SIGMA), np.full(3, HOLD_SIGMA * step)])
     hold_range = gtsam.noiseModel.Isotropic.Sigma(1, HOLD_SIGMA * step)
@@ -327,23 +315,18 @@ def image_optimum(K: np.ndarray, T_world_cam: np.ndarray, obs: Observations, rou
         graph.add(gtsam.RangeFactorPose3(Xk(0), Xk(j), step, hold_range))
         for q in range(pts.shape[0]):
             values.insert(Lk(q), pts[q])
-        for f, t, p in zip(sub.frame.tolist(), sub.track.tolist(), sub.uv):
-            graph.add(gtsam.GenericProjectionFactorCal3_S2(p, noise, Xk(f), Lk(t), cal, False, False))
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(int(max_iterations))
-        try:
-            e0 = graph.error(values)
-            result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-            e1 = graph.error(result)
-        except RuntimeError:  # indeterminate system and friends
+        add_reprojection_factors(graph, K, sub.frame, sub.track, sub.uv, huber_px, Xk, Lk)
+        solved, ok = levenberg_marquardt(graph, values, max_iterations)
+        if not ok:
             return None, False
+        result, e0, e1, _ = solved
         T_new = np.stack([result.atPose3(Xk(i)).matrix() for i in range(T.shape[0])])
-        if not (np.isfinite(e1) and np.isfinite(T_new).all()):
+        if not np.isfinite(T_new).all():
             return None, False
         T = T_new
         before.append(float(e0))
         after.append(float(e1))
         pts = np.stack([result.atPoint3(Lk(q)) for q in range(pts.shape[0])])
-    uv, _ = _project(K, T[sub.frame], pts[sub.track])
+    uv, _ = project(K, T[sub.frame], pts[sub.track])
     res = np.linalg.norm(uv - sub.uv, axis=1)
     return ImageOptimum(T, before, after, int(pts.shape[0]), int(sub.frame.size), float(np.median(res))), True
