@@ -118,17 +118,32 @@ sequences:
 
 def test_timeout_fails_alone(ray_local, shared_data, tmp_path):
     long_seq, short_seq = shared_data / "kitti00-f0000-0150", shared_data / "kitti06-f0000-0050"
-    seqs = sequences_from_args([long_seq, short_seq])
-    long_job, short_job = expand_jobs(seqs, overrides=["runtime.threads=1", "output.plot=false"])
-    # the long one: 150 frames at the default 256x832 (> 10 s here); the short one: 7 frames at 128x384
-    short_job = expand_jobs(sequences_from_args([short_seq]),
-                            overrides=[*SMALL_SET, "input.stride=8"])[0]
-    results = run_batch([long_job, short_job], tmp_path / "b", workers=2, timeout=6.0, grace_s=5.0)
+    long_job = expand_jobs(sequences_from_args([long_seq]), overrides=[*SMALL_SET, "input.stride=1"])[0]
+    short_job = expand_jobs(sequences_from_args([short_seq]), overrides=[*SMALL_SET, "input.stride=8"])[0]
+
+    def slow_or_run(job, out_root, config, force=False):
+        if job.name == long_job.name:  # at least 0.5 s a frame (sleeping, so load does not change it): > 75 s
+            import time
+
+            import trianflow_vo.pipeline as pipeline  # this worker process runs this one job
+
+            step = pipeline._step
+
+            def slow_step(*args, **kwargs):
+                time.sleep(0.5)
+                return step(*args, **kwargs)
+
+            pipeline._step = slow_step
+        return run_job(job, out_root, config, force=force)
+
+    # the short one: 7 frames at 128x384, a few seconds
+    results = run_batch([long_job, short_job], tmp_path / "b", workers=2, timeout=12.0, grace_s=5.0,
+                        job_fn=slow_or_run)
     long_row, short_row = results
-    assert long_row["status"] == "failed" and long_row["reason"] == "timeout: stopped after 6 s"
+    assert long_row["status"] == "failed" and long_row["reason"] == "timeout: stopped after 12 s"
     assert short_row["status"] == "completed" and short_row["frames"] == 7
     doc = json.loads((tmp_path / "b" / long_job.out / "run.json").read_text())
-    assert doc["status"] == "failed" and doc["error"] == "timeout: stopped after 6 s"
+    assert doc["status"] == "failed" and doc["error"] == "timeout: stopped after 12 s"
     assert 0 < doc["frames_processed"] < 150
     assert not (tmp_path / "b" / long_job.out / ".lock").exists()
 
@@ -141,12 +156,19 @@ def test_crashed_worker_fails_alone(ray_local, shared_data, tmp_path):
 
     def crash_or_run(job, out_root, config, force=False):
         if job.name == "crash":
-            os._exit(3)  # the worker process dies, as on a segfault or the OOM killer
+            import socket
+
+            # a run that took its folder's lock, then its process dies (a segfault, the OOM killer)
+            out = Path(out_root) / job.out
+            out.mkdir(parents=True, exist_ok=True)
+            (out / ".lock").write_text(f"{os.getpid()}\n{socket.gethostname()}\n")
+            os._exit(3)
         return run_job(job, out_root, config, force=force)
 
     ok, crashed = run_batch(jobs, tmp_path / "b", workers=2, job_fn=crash_or_run)
     assert ok["status"] == "completed" and ok["frames"] == 7
     assert crashed["status"] == "failed" and crashed["reason"].startswith("worker crashed")
+    assert not (tmp_path / "b" / "crash" / ".lock").exists()  # the dead run's lock is removed
 
 
 def test_fresh_process_per_job_and_progress(ray_local, shared_data, tmp_path):

@@ -111,6 +111,25 @@ def test_stale_lock_of_a_dead_process_is_taken_over_with_a_warning(sample_seq, t
     assert not (out / ".lock").exists()
 
 
+def test_clear_stale_lock_removes_only_the_lock_of_a_dead_process_of_this_host(tmp_path):
+    import socket
+
+    from trianflow_vo.io.run_dir import clear_stale_lock, lock_held_here
+
+    lock = tmp_path / ".lock"
+    assert not clear_stale_lock(tmp_path) and not lock_held_here(tmp_path)  # no lock: nothing to do
+    lock.write_text(f"{os.getpid()}\n{socket.gethostname()}\n")  # a live run
+    assert lock_held_here(tmp_path) and not clear_stale_lock(tmp_path) and lock.exists()
+    lock.write_text(f"{_dead_pid()}\nanother-host.example\n")  # cannot be checked from here
+    assert not lock_held_here(tmp_path) and not clear_stale_lock(tmp_path) and lock.exists()
+    lock.write_text("not a pid\n")
+    assert not clear_stale_lock(tmp_path) and lock.exists()
+    dead = _dead_pid()
+    lock.write_text(f"{dead}\n{socket.gethostname()}\n")
+    assert not lock_held_here(tmp_path)
+    assert clear_stale_lock(tmp_path) and not lock.exists()
+
+
 def test_earlier_run_refused_unless_overwrite_which_clears_only_run_files(sample_seq, tmp_path):
     from trianflow_vo.io.run_dir import EarlierRun
     from trianflow_vo.pipeline import run

@@ -17,8 +17,8 @@ task (including its worker's start), not from when the batch started.
 A task that exceeds ``timeout`` is cancelled (Ctrl-C in the worker: the pipeline closes the
 folder, run.json ``interrupted``) and, if still running ``grace_s`` later, its worker is killed.
 Either way the job is ``failed`` with reason ``timeout: ...`` and its ``run.json`` is changed to
-``failed`` when the driver can see it. A crashed or out-of-memory worker is ``failed`` with a
-one-line reason; the other jobs go on.
+``failed`` when the driver can see it, which also removes the lock a killed run left. A crashed or
+out-of-memory worker is ``failed`` with a one-line reason; the other jobs go on.
 """
 
 from __future__ import annotations
@@ -394,7 +394,10 @@ def _collect(ray, ref, job: Job, out_root: Path, timed_out: bool, timeout: float
         row = ray.get(ref)
     except rex.RayError as exc:
         reason = f"timeout: stopped after {timeout:g} s" if timed_out else ray_failure(exc)
+        from trianflow_vo.io.run_dir import clear_stale_lock
+
         _wait_unlocked(out_root / job.out, grace_s)  # a cancelled run may still be closing its folder
+        clear_stale_lock(out_root / job.out)  # a killed run could not remove its lock
         mark_stopped(out_root / job.out, reason)
         return _failed_row(job, out_root, reason)
     if timed_out and row.get("status") != "completed":  # the job saw the cancel and returned
@@ -404,32 +407,12 @@ def _collect(ray, ref, job: Job, out_root: Path, timed_out: bool, timeout: float
     return row
 
 
-def _lock_held(out_dir: Path) -> bool:
-    """Whether the run folder's lock names a live process of this host (its run is still closing)."""
-    import socket
-
-    from trianflow_vo.io.run_dir import LOCK_NAME
-
-    try:
-        lines = (out_dir / LOCK_NAME).read_text().splitlines()
-        pid, host = int(lines[0]), (lines[1].strip() if len(lines) > 1 else None)
-    except (OSError, ValueError, IndexError):
-        return False
-    if host not in (None, socket.gethostname()):
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except OSError:
-        return True
-    return True
-
-
 def _wait_unlocked(out_dir: Path, wait_s: float) -> None:
     """Wait (at most ``wait_s``) until no live run holds the folder: a cancelled run has closed its files."""
+    from trianflow_vo.io.run_dir import lock_held_here
+
     deadline = time.perf_counter() + wait_s
-    while _lock_held(out_dir) and time.perf_counter() < deadline:
+    while lock_held_here(out_dir) and time.perf_counter() < deadline:
         time.sleep(0.05)
 
 

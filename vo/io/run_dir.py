@@ -8,7 +8,8 @@
   lock names a live process refuses (:class:`RunDirBusy`); a lock left by a dead
   process is taken over with a warning. The check-and-take is serialised with
   ``flock`` on the folder itself where available (POSIX), so two runs cannot both
-  take over one stale lock. The lock is removed at the end of the run.
+  take over one stale lock. The lock is removed at the end of the run; a batch that had
+  to kill a run removes the lock it left (:func:`clear_stale_lock`).
 * :func:`open_run_dir` = create the folder, take the lock, then refuse a folder that
   holds an earlier run (:data:`RUN_FILES`) unless ``overwrite`` is given, in which case
   only those files (and the earlier run's recording when it is inside the folder) are
@@ -160,6 +161,32 @@ class RunLock:
 
     def __exit__(self, *exc) -> None:
         self.release()
+
+
+def lock_held_here(folder: Path) -> bool:
+    """Whether ``folder/.lock`` names a live process of this host (a lock of another host
+    cannot be checked from here and counts as not held)."""
+    lock = RunLock(folder)
+    pid, host = lock._owner()
+    return pid is not None and host in (None, lock.host) and _pid_alive(pid)
+
+
+def clear_stale_lock(folder: Path) -> bool:
+    """Remove ``folder/.lock`` when it names a process of this host that no longer runs
+    (a run killed before it could remove it). Returns whether a lock was removed."""
+    lock = RunLock(folder)
+    if not lock.path.exists():
+        return False
+    with _folder_mutex(lock.folder):
+        pid, host = lock._owner()
+        if pid is None or host not in (None, lock.host) or _pid_alive(pid):
+            return False
+        try:
+            os.unlink(lock.path)
+        except OSError:
+            return False
+    log.info(f"{lock.folder}: removed the stale lock of process {pid}, which was stopped ({lock.path})")
+    return True
 
 
 def earlier_run_files(folder: Path) -> list[Path]:
