@@ -29,6 +29,7 @@ import numpy as np
 
 from trianflow_vo.errors import InputError
 from trianflow_vo.io.atomic import write_atomic
+from trianflow_vo.io.read import read_bytes
 
 #: one metre in a KITTI depth PNG
 KITTI_DEPTH_SCALE = 256.0
@@ -69,17 +70,6 @@ def write_depth_png(path: str | Path, depth: np.ndarray) -> Path:
     return write_atomic(path, encode_depth_png(depth))
 
 
-def _read_bytes(path: Path) -> bytes:
-    try:
-        return path.read_bytes()
-    except FileNotFoundError:
-        raise InputError("no such file", path) from None
-    except IsADirectoryError:
-        raise InputError("is a folder, expected a file", path) from None
-    except OSError as exc:
-        raise InputError(f"cannot read: {exc.strerror or exc}", path) from None
-
-
 def decode_depth_png(data: bytes, source: str | Path = "<bytes>") -> np.ndarray:
     """``(H, W)`` float32 depth (metres, 0 = none) from the bytes of a KITTI depth PNG.
 
@@ -109,7 +99,7 @@ def read_depth_png(path: str | Path) -> np.ndarray:
         InputError: missing, unreadable, or not a 16-bit 1-channel PNG (naming the file).
     """
     path = Path(path)
-    return decode_depth_png(_read_bytes(path), path)
+    return decode_depth_png(read_bytes(path), path)
 
 
 # ---------------------------------------------------------------------------

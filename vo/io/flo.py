@@ -16,6 +16,7 @@ import numpy as np
 
 from trianflow_vo.errors import InputError
 from trianflow_vo.io.atomic import write_atomic
+from trianflow_vo.io.read import read_bytes
 
 FLO_MAGIC = 202021.25
 _MAGIC_BYTES = np.array([FLO_MAGIC], dtype="<f4").tobytes()  # b"PIEH"
@@ -66,10 +67,4 @@ def read_flo(path: str | Path) -> np.ndarray:
         InputError: missing file or not a valid ``.flo`` (one line naming the file).
     """
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise InputError("no such file", path) from None
-    except OSError as exc:
-        raise InputError(f"cannot read: {exc.strerror or exc}", path) from None
-    return decode_flo(data, path)
+    return decode_flo(read_bytes(path), path)

@@ -33,6 +33,7 @@ import numpy as np
 
 from trianflow_vo.errors import InputError
 from trianflow_vo.io.atomic import write_atomic
+from trianflow_vo.io.read import read_bytes
 from trianflow_vo.io.flo import read_flo
 from trianflow_vo.io.sequence import natural_key
 
@@ -125,17 +126,6 @@ def decode_kitti_flow(data: bytes, source: str | Path = "<bytes>") -> tuple[np.n
     return flow, valid
 
 
-def _read_bytes(path: Path) -> bytes:
-    try:
-        return path.read_bytes()
-    except FileNotFoundError:
-        raise InputError("no such file", path) from None
-    except IsADirectoryError:
-        raise InputError("is a folder, expected a file", path) from None
-    except OSError as exc:
-        raise InputError(f"cannot read: {exc.strerror or exc}", path) from None
-
-
 def read_kitti_flow(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """``(flow (H, W, 2) float32, valid (H, W) bool)`` of a KITTI flow PNG (see :func:`decode_kitti_flow`).
 
@@ -143,7 +133,7 @@ def read_kitti_flow(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         InputError: missing, unreadable or not a KITTI flow PNG (one line naming the file).
     """
     path = Path(path)
-    return decode_kitti_flow(_read_bytes(path), path)
+    return decode_kitti_flow(read_bytes(path), path)
 
 
 def read_flow_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
