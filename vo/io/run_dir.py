@@ -118,6 +118,17 @@ class RunLock:
             return None, None
         return pid, (lines[1].strip() if len(lines) > 1 else None)
 
+    def owner_state(self) -> tuple[str, int | None, str | None]:
+        """``(state, pid, host)`` of the lock file's owner. ``state``: ``"none"`` (no lock file, or
+        no pid in it), ``"foreign"`` (another host: cannot be checked from here), ``"live"`` or
+        ``"dead"`` (a process of this host; a lock without a host counts as this host's)."""
+        pid, host = self._owner()
+        if pid is None:
+            return "none", None, host
+        if host not in (None, self.host):
+            return "foreign", pid, host
+        return ("live" if _pid_alive(pid) else "dead"), pid, host
+
     def acquire(self) -> RunLock:
         """Take the lock; raises :class:`RunDirBusy` when a live run holds it."""
         with _folder_mutex(self.folder):
@@ -125,12 +136,12 @@ class RunLock:
                 try:
                     fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
                 except FileExistsError:
-                    pid, host = self._owner()
-                    if pid is not None and host not in (None, self.host):
+                    state, pid, host = self.owner_state()
+                    if state == "foreign":
                         raise RunDirBusy(f"in use by a run on host {host} (pid {pid}, lock {self.path}); "
                                          f"choose another --out, or delete {self.path} if no run uses it",
                                          self.folder) from None
-                    if pid is not None and _pid_alive(pid):
+                    if state == "live":
                         raise RunDirBusy(f"in use by another run (pid {pid}, lock {self.path}); "
                                          "choose another --out or wait for it to finish", self.folder) from None
                     what = f"of process {pid}, which is no longer running" if pid is not None else "without a pid"
@@ -166,9 +177,7 @@ class RunLock:
 def lock_held_here(folder: Path) -> bool:
     """Whether ``folder/.lock`` names a live process of this host (a lock of another host
     cannot be checked from here and counts as not held)."""
-    lock = RunLock(folder)
-    pid, host = lock._owner()
-    return pid is not None and host in (None, lock.host) and _pid_alive(pid)
+    return RunLock(folder).owner_state()[0] == "live"
 
 
 def clear_stale_lock(folder: Path) -> bool:
@@ -178,8 +187,8 @@ def clear_stale_lock(folder: Path) -> bool:
     if not lock.path.exists():
         return False
     with _folder_mutex(lock.folder):
-        pid, host = lock._owner()
-        if pid is None or host not in (None, lock.host) or _pid_alive(pid):
+        state, pid, _ = lock.owner_state()
+        if state != "dead":
             return False
         try:
             os.unlink(lock.path)
