@@ -52,6 +52,20 @@ def drive(tmp_path_factory):
     return seq
 
 
+@pytest.fixture(scope="session")
+def long_drive(tmp_path_factory):
+    """The urban turn over 26 frames: enough keyframes for several window adjustments.
+
+    The 14-frame ``drive`` gives 5 or more adjustments on one CPU and 3 on another (the
+    keyframe choice moves with the floating-point paths); this one gives 12 on the latter.
+    """
+    from synthetic_sequences import make_sequence
+
+    seq = tmp_path_factory.mktemp("seq") / "urban26"
+    make_sequence("urban_turn", seq, n_frames=26, seed=3, size=(128, 384))
+    return seq
+
+
 @pytest.fixture
 def run_seq():
     """``run_seq(seq, out, *overrides) -> (run.json, poses (N, 3, 4))`` with plots off."""

@@ -17,10 +17,10 @@ from trianflow_vo.ba.backend import WindowBackend  # noqa: E402
 from trianflow_vo.ba.worker import init_worker  # noqa: E402
 
 
-def test_the_worker_process_gives_the_poses_of_a_blocking_adjustment(drive, tmp_path, run_seq):
-    doc_c, p_c = run_seq(drive, tmp_path / "c", "backend.window=5", "backend.concurrent=true")
-    doc_b, p_b = run_seq(drive, tmp_path / "b", "backend.window=5", "backend.concurrent=false")
-    _, p_0 = run_seq(drive, tmp_path / "w0", "backend.window=0")
+def test_the_worker_process_gives_the_poses_of_a_blocking_adjustment(long_drive, tmp_path, run_seq):
+    doc_c, p_c = run_seq(long_drive, tmp_path / "c", "backend.window=5", "backend.concurrent=true")
+    doc_b, p_b = run_seq(long_drive, tmp_path / "b", "backend.window=5", "backend.concurrent=false")
+    _, p_0 = run_seq(long_drive, tmp_path / "w0", "backend.window=0")
     be_c, be_b = doc_c["backend"], doc_b["backend"]
     assert be_c["concurrent"] is True and be_b["concurrent"] is False
     assert be_c["solves"] == be_b["solves"] >= 4 and be_c["revisions"] == be_b["revisions"] == be_c["solves"]
@@ -31,7 +31,7 @@ def test_the_worker_process_gives_the_poses_of_a_blocking_adjustment(drive, tmp_
     assert multiprocessing.active_children() == []  # the worker was stopped with the run
 
 
-def test_a_worker_process_that_dies_is_reported_and_the_run_adjusts_in_process(drive, tmp_path, monkeypatch,
+def test_a_worker_process_that_dies_is_reported_and_the_run_adjusts_in_process(long_drive, tmp_path, monkeypatch,
                                                                                 run_seq):
     real = WindowBackend._worker
 
@@ -41,8 +41,8 @@ def test_a_worker_process_that_dies_is_reported_and_the_run_adjusts_in_process(d
         return pool
 
     monkeypatch.setattr(WindowBackend, "_worker", dying)
-    doc, poses = run_seq(drive, tmp_path / "died", "backend.window=5", "backend.concurrent=true")
-    _, p_b = run_seq(drive, tmp_path / "b", "backend.window=5", "backend.concurrent=false")
+    doc, poses = run_seq(long_drive, tmp_path / "died", "backend.window=5", "backend.concurrent=true")
+    _, p_b = run_seq(long_drive, tmp_path / "b", "backend.window=5", "backend.concurrent=false")
     assert doc["status"] == "completed"
     warning = doc["warnings"]["backend-worker"]
     assert warning["count"] == 1 and "adjusting in this process" in warning["items"][0]["message"]
