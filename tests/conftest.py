@@ -42,14 +42,18 @@ def _home_out_of_the_way(tmp_path_factory):
 
 
 # -- the back-end tests (tests/ba): a rendered drive and a run of the pipeline on it ------------------
+def _urban_turn(tmp_path_factory, n_frames: int):
+    from synthetic_sequences import make_sequence
+
+    seq = tmp_path_factory.mktemp("seq") / f"urban{n_frames}"
+    make_sequence("urban_turn", seq, n_frames=n_frames, seed=3, size=(128, 384))
+    return seq
+
+
 @pytest.fixture(scope="module")
 def drive(tmp_path_factory):
     """A rendered urban turn (14 frames, known poses)."""
-    from synthetic_sequences import make_sequence
-
-    seq = tmp_path_factory.mktemp("seq") / "urban"
-    make_sequence("urban_turn", seq, n_frames=14, seed=3, size=(128, 384))
-    return seq
+    return _urban_turn(tmp_path_factory, 14)
 
 
 @pytest.fixture(scope="session")
@@ -59,11 +63,7 @@ def long_drive(tmp_path_factory):
     The 14-frame ``drive`` gives 5 or more adjustments on one CPU and 3 on another (the
     keyframe choice moves with the floating-point paths); this one gives 12 on the latter.
     """
-    from synthetic_sequences import make_sequence
-
-    seq = tmp_path_factory.mktemp("seq") / "urban26"
-    make_sequence("urban_turn", seq, n_frames=26, seed=3, size=(128, 384))
-    return seq
+    return _urban_turn(tmp_path_factory, 26)
 
 
 @pytest.fixture
