@@ -245,6 +245,11 @@ class KeyframeConfig(_Section):
                                           "held keyframe exceeds this fraction of the image width becomes the "
                                           "keyframe (its depth moved by the solved pose)",
                                     range=_Range(0.0, lo_open=True))
+    max_next_flow_fraction: float = _opt(0.125, "policy gric: a PnP / rotation-only frame also becomes the "
+                                                 "keyframe when the flow against the held keyframe expected at the "
+                                                 "next frame (this one's times (n+1)/n after n frames held) exceeds "
+                                                 "this fraction of the image width, the range DIS can follow",
+                                         range=_Range(0.0, lo_open=True))
     noise_floor_px: float = _opt(0.1, "policy gric: smallest flow noise assumed (pixels) when the matches' "
                                       "residuals say less", range=_Range(0.0, lo_open=True))
     independent_matches: int = _opt(500, "policy gric: matches counted as independent when propagating the noise "

@@ -58,6 +58,7 @@ class Odometry:
         self.T_world_last = np.eye(4)
         self.last_step_norm: float | None = None  # |t| of the last keyframe-to-keyframe step
         self.line = 0
+        self._kf_line = 0  # line of the current keyframe
         self._ahead: tuple[np.ndarray, object] | None = None  # (next image, its prepared input) when speculating
         self._new_keyframe_last = True  # did the last frame become the keyframe (the guess for the next)
 
@@ -105,7 +106,8 @@ class Odometry:
         ``keyframes.policy``: ``gric`` (rotation only preferred by GRIC, or the translation
         direction's sigma over ``max_direction_deg``) or ``parallax`` (median parallax under
         ``min_parallax_px``) give PnP/rotation with the keyframe kept (handed on under
-        ``gric`` when its flow exceeds ``max_flow_fraction`` of the width); else the two-view
+        ``gric`` when the next frame's flow against it is expected past ``max_flow_fraction``
+        of the width); else the two-view
         step, after which the frame is the new keyframe."""
         kc = self.cfg.keyframes
         median_flow = float(np.median(m.flow_mag))
@@ -133,10 +135,19 @@ class Odometry:
         else:
             sol = self.front.two_view(kf, ref, m, R_rot, self.last_step_norm, tm, estimated=(rel, n_in))
         mean_flow = float(m.flow_mag.mean())
-        if (sol.tracks is None and sol.branch in (Branch.PNP, Branch.ROTATION)
-                and mean_flow > kc.max_flow_fraction * self.camera.size_hw[1]):
-            # the flow against the held keyframe grows with every frame: hand its depth on to this frame
-            sol = self.front.transfer_keyframe(kf, sol, f"; keyframe handed on at mean flow {mean_flow:.1f} px")
+        # the flow against a held keyframe grows with every frame: hand the keyframe's depth on to
+        # this frame once the flow passes max_flow_fraction of the width, or when the next frame's
+        # (this one's times (n + 1) / n after n frames held) would pass max_next_flow_fraction,
+        # the range the flow can follow: in a fast turn one frame's flow is already 63 px
+        width = self.camera.size_hw[1]
+        held = max(1, self.line - self._kf_line)
+        next_flow = mean_flow * (held + 1) / held
+        if sol.tracks is None and sol.branch in (Branch.PNP, Branch.ROTATION):
+            if mean_flow > kc.max_flow_fraction * width:
+                sol = self.front.transfer_keyframe(kf, sol, f"; keyframe handed on at mean flow {mean_flow:.1f} px")
+            elif next_flow > kc.max_next_flow_fraction * width:
+                sol = self.front.transfer_keyframe(kf, sol, f"; keyframe handed on at mean flow {mean_flow:.1f} px, "
+                                                            f"{next_flow:.1f} px expected at the next frame")
         return sol, ref
 
     def _solve_pairwise(self, kf: Keyframe, m: Matches, cur: Keyframe, stats: dict, tm: StageTimer):
@@ -167,6 +178,7 @@ class Odometry:
                tm: StageTimer) -> FrameResult:
         """The first frame: identity pose, the first keyframe (no depth yet)."""
         self.keyframe = Keyframe(frame_index, image, prepared, np.eye(4), Tracks.empty())
+        self._kf_line = self.line
         self.T_world_last = np.eye(4)
         self._reference(self.keyframe, tm)  # a network computes the first keyframe's depth now
         line, self.line = self.line, self.line + 1
@@ -184,6 +196,7 @@ class Odometry:
             if sol.step_norm is not None:  # a handed-on keyframe (PnP / rotation) keeps the last step length
                 self.last_step_norm = sol.step_norm
             self.keyframe = Keyframe(frame_index, image, prepared, sol.T_world_cam, sol.tracks)
+            self._kf_line = self.line
         self.T_world_last = sol.T_world_cam
         line, self.line = self.line, self.line + 1
         view = FrameView.of(image=image, depth=None if ref is None else ref.depth, flow=m.fw, flow_bw=m.bw,

@@ -45,6 +45,26 @@ def test_pure_rotation_is_a_rotation_branch_and_the_flow_is_never_let_grow(tmp_p
     assert "keyframe handed on" in frames
 
 
+def test_a_held_keyframe_is_handed_on_before_the_next_frame_s_flow_would_pass_its_range(tmp_path):
+    """The flow against a held keyframe grows by about one frame's flow per frame. The keyframe
+    is handed on when the next frame's flow is expected past ``max_next_flow_fraction`` of the
+    width (the range the flow can follow), not only once this frame's is past
+    ``max_flow_fraction``: in a fast turn one frame's flow is 63 px at 256x832, and the flow of
+    two frames (126 px) is one DIS cannot follow. Here only the expectation can hand on (the
+    other limit is half the width): the flow passes the 38.4 px range by less than half a
+    frame's flow."""
+    _, out, _ = _run(tmp_path, "pure_rotation", 24, (128, 384), "keyframes.max_flow_fraction=0.5",
+                     "keyframes.max_next_flow_fraction=0.1")
+    with open(out / "frames.tsv") as f:
+        rows = list(csv.DictReader(f, delimiter="\t"))[1:]
+    flow = np.array([float(r["mean_flow_px"]) for r in rows])
+    ref = [r["ref_frame"] for r in rows]
+    per_frame = np.median([flow[0]] + [flow[i] for i in range(1, len(rows)) if ref[i] != ref[i - 1]])
+    assert len(set(ref)) >= 3, ref  # handed on at least twice
+    assert any("expected at the next frame" in r["reason"] for r in rows)
+    assert flow.max() < 0.1 * 384 + 0.5 * per_frame, (flow.max(), per_frame)
+
+
 @pytest.mark.parametrize("name", ["static", "static_noisy"])
 def test_static_camera_is_identity(tmp_path, name):
     _, out, branches = _run(tmp_path, name, 8, (128, 384))
