@@ -106,9 +106,9 @@ class Odometry:
         ``keyframes.policy``: ``gric`` (rotation only preferred by GRIC, or the translation
         direction's sigma over ``max_direction_deg``) or ``parallax`` (median parallax under
         ``min_parallax_px``) give PnP/rotation with the keyframe kept (handed on under
-        ``gric`` when the next frame's flow against it is expected past ``max_flow_fraction``
-        of the width); else the two-view
-        step, after which the frame is the new keyframe."""
+        ``gric`` when its flow exceeds ``max_flow_fraction`` of the width, or the next
+        frame's is expected past ``max_next_flow_fraction``); else the two-view step, after
+        which the frame is the new keyframe."""
         kc = self.cfg.keyframes
         median_flow = float(np.median(m.flow_mag))
         if median_flow < kc.static_flow_px:
