@@ -198,6 +198,9 @@ class GeometryConfig(_Section):
     min_angle_rad: float = _opt(1e-3, "triangulated rays meeting at a smaller angle (radians) are dropped",
                                 range=_Range(0.0))
     pnp_reproj_px: float = _opt(1.0, "PnP RANSAC reprojection threshold in pixels", range=_Range(0.0, lo_open=True))
+    pnp_min_inlier_ratio: float = _opt(0.1, "a PnP against a held keyframe with a smaller share of its points as "
+                                            "inliers means the flow against the keyframe was lost: the frame is "
+                                            "solved again through the previous frame", range=_Range(0.0, 1.0))
 
 
 @dataclass(frozen=True)

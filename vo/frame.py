@@ -62,7 +62,7 @@ class FrameStats:
     Attributes:
         inliers: matches consistent with the pose (two-view: Sampson < epi_inlier_px;
             PnP: RANSAC inliers).
-        inlier_ratio: ``inliers`` / matches (two-view only).
+        inlier_ratio: ``inliers`` / matches (two-view), or / points with depth (PnP).
         parallax_px: median parallax after removing the best rotation (pixels).
         mean_flow_px: mean flow magnitude of the sampled matches (pixels).
         scale: length of the step from the reference keyframe, in trajectory units.

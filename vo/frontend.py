@@ -120,7 +120,9 @@ def small_motion_solution(X_ref: np.ndarray | None, pts_ref: np.ndarray, pts_cur
         (R, t, inl), ok = solve_pnp(X_ref, pts_cur, K, reproj_px=reproj_px, rng_seed=seed)
         if ok:
             T_ref_cam = invert_T(make_T(R, t))
-            return Solution(Branch.PNP, why, T_world_ref @ T_ref_cam, T_ref_cam, {"inliers": int(inl.sum())},
+            n_in = int(inl.sum())
+            return Solution(Branch.PNP, why, T_world_ref @ T_ref_cam, T_ref_cam,
+                            {"inliers": n_in, "inlier_ratio": n_in / len(X_ref)},
                             pts_ref=pts_ref[inl], pts_cur=pts_cur[inl])
         why += "; PnP failed"
     else:

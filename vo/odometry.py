@@ -21,6 +21,7 @@ from trianflow_vo.depth.base import DepthPrior, ReferenceDepth
 from trianflow_vo.flow.base import FlowSource
 from trianflow_vo.frame import Branch, FrameResult, FrameStats, FrameView
 from trianflow_vo.frontend import FrontEnd, Matches, Solution, failed_solution, identity_solution
+from trianflow_vo.geometry.se3 import invert_T
 from trianflow_vo.keyframe import Keyframe, Tracks
 from trianflow_vo.timing import StageTimer
 
@@ -61,6 +62,9 @@ class Odometry:
         self._kf_line = 0  # line of the current keyframe
         self._ahead: tuple[np.ndarray, object] | None = None  # (next image, its prepared input) when speculating
         self._new_keyframe_last = True  # did the last frame become the keyframe (the guess for the next)
+        # the last frame when it was solved against the held keyframe and kept it: (index, image, prepared,
+        # Solution), the way round a keyframe whose flow is lost
+        self._held_last: tuple[int, np.ndarray, object, Solution] | None = None
 
     def describe(self) -> dict:
         return {"odometry": "trianflow", "scale_source": self.scale_source, "flow_source": self.flow.describe(),
@@ -95,9 +99,44 @@ class Odometry:
             sol = failed_solution(kf.T_world_cam, self.T_world_last, f"only {m.idx.size} reliable flow matches")
         else:
             stats["mean_flow_px"] = float(m.flow_mag.mean())
-            sol, ref = self._solve(kf, m, Keyframe(frame_index, image, prepared, np.eye(4), Tracks.empty()),
-                                   stats, tm)
+            cur = Keyframe(frame_index, image, prepared, np.eye(4), Tracks.empty())
+            sol, ref = self._solve(kf, m, cur, stats, tm)
+            if self.scale_source != "depth" and self._flow_lost(sol):  # "depth" holds no keyframe
+                sol, m, ref, stats = self._through_last_frame(kf, cur, sol, m, ref, stats, tm)
         return self._commit(frame_index, timestamp, image, prepared, m, ref, sol, stats, tm)
+
+    def _flow_lost(self, sol: Solution) -> bool:
+        """A PnP that explains too small a share of its points: the flow against the keyframe is lost."""
+        ratio = sol.stats.get("inlier_ratio")
+        return (sol.branch == Branch.PNP and ratio is not None
+                and ratio < self.cfg.geometry.pnp_min_inlier_ratio)
+
+    def _through_last_frame(self, kf: Keyframe, cur: Keyframe, sol: Solution, m: Matches,
+                            ref: ReferenceDepth | None, stats: dict, tm: StageTimer):
+        """Solve the frame again against the last frame, when that one held the same keyframe: the
+        keyframe's depth is moved into the last frame by its pose, the frame is solved against it and
+        becomes the keyframe; its pose stays expressed in ``kf``. Without such a frame, or when that fails
+        too, the PnP pose is kept and marked degraded. Returns ``(sol, m, ref, stats)``."""
+        lost = (f"flow against keyframe {kf.index} lost (PnP {sol.stats['inliers']} inliers, "
+                f"{100 * sol.stats['inlier_ratio']:.1f}% of its points)")
+        last = self._held_last
+        if last is not None:
+            index, image, prepared, last_sol = last
+            moved = self.front.transfer_keyframe(kf, last_sol, "")
+            via = Keyframe(index, image, prepared, kf.T_world_cam @ last_sol.T_ref_cam, moved.tracks)
+            m2 = self.front.match(via, cur.prepared, tm)
+            if m2.idx.size >= max(8, self.cfg.geometry.min_inliers):
+                stats2 = {"mean_flow_px": float(m2.flow_mag.mean())}
+                sol2, ref2 = self._solve(via, m2, cur, stats2, tm)
+                if sol2.branch in (Branch.TWO_VIEW, Branch.PNP, Branch.ROTATION) and not self._flow_lost(sol2):
+                    if sol2.tracks is None:
+                        sol2 = self.front.transfer_keyframe(via, sol2, "")
+                    reason = f"{lost}: solved through frame {index}" + (f"; {sol2.reason}" if sol2.reason else "")
+                    return (replace(sol2, reason=reason, T_ref_cam=invert_T(kf.T_world_cam) @ sol2.T_world_cam),
+                            m2, ref2, stats2)
+        stats = {**stats, "degraded": True}
+        return replace(sol, reason=f"{sol.reason}; {lost}: PnP pose kept"), m, ref, stats
+
 
     def _solve_to_keyframe(self, kf: Keyframe, m: Matches, cur: Keyframe, stats: dict, tm: StageTimer):
         """Our policy (``scale.source`` triangulation / keyframe-depth): ``(Solution, reference depth)``.
@@ -192,6 +231,8 @@ class Odometry:
         kf = self.keyframe
         is_keyframe = sol.tracks is not None
         self._new_keyframe_last = is_keyframe
+        held = not is_keyframe and sol.branch in (Branch.PNP, Branch.ROTATION) and not self._flow_lost(sol)
+        self._held_last = (frame_index, image, prepared, sol) if held else None
         if is_keyframe:
             if sol.step_norm is not None:  # a handed-on keyframe (PnP / rotation) keeps the last step length
                 self.last_step_norm = sol.step_norm

@@ -292,3 +292,79 @@ def test_results_stay_attached_to_their_keyframe():
         assert not a.flags.writeable
     with pytest.raises(Exception):  # frozen dataclass
         recs[2].branch = Branch.FAILED
+
+
+# -- a held keyframe whose flow is lost: the frame is solved again through the last frame ----------------------
+
+
+class LostPairFlow(BoxFlow):
+    """:class:`BoxFlow`, except that the pair ``lost`` gets a random flow of up to 40 px that varies
+    over ~30 px (PnP on it keeps 2.4 % of its points, like DIS past its range: 1-4 %)."""
+
+    def __init__(self, poses, lost: tuple[int, int]):
+        super().__init__(poses)
+        self.lost = lost
+
+    def flow_pair(self, a, b):
+        if (a, b) != self.lost:
+            return super().flow_pair(a, b)
+        rng = np.random.default_rng(7)
+        gy, gx = np.mgrid[0:H, 0:W] / 30.0
+        fw = np.zeros((H, W, 2), np.float32)
+        for c in range(2):
+            k = rng.normal(size=(3, 3))
+            fw[..., c] = 40.0 * np.tanh(k[0, 0] + k[0, 1] * np.sin(gx + k[0, 2]) + k[1, 0] * np.cos(gy + k[1, 1])
+                                        + k[2, 0] * np.sin(gx * k[2, 1] + gy * k[2, 2]))
+        return fw, -fw
+
+
+# three steps forward (two-view), one of 4 cm while turning (its translation direction is uncertain:
+# PnP, keyframe 3 held), then a full step: the flow 3 -> 5 is lost, the flow 4 -> 5 is not
+STEPS = [([0.0, 0.01, 0.0], [0.0, 0.0, 1.0])] * 3 + [([0.0, 0.02, 0.0], [0.0, 0.0, 0.04]),
+                                                      ([0.0, 0.01, 0.0], [0.05, 0.0, 1.0])]
+
+
+def _run(min_ratio: float):
+    poses = trajectory(STEPS)
+    cfg = merge_dict(make_config(), {"geometry": {"pnp_min_inlier_ratio": min_ratio}}, "test")
+    odo = Odometry(CAMERA, LostPairFlow(poses, lost=(3, 5)), TriangulatedDepth((H, W)), cfg)
+    image = np.zeros((H, W, 3), np.uint8)
+    return poses, [odo.step(i, None, image) for i in range(len(poses))]
+
+
+def _step_error(poses, results, i: int) -> float:
+    """Error (m) of the motion 3 -> i against the truth, in the scale of the first step."""
+    s = np.linalg.norm(poses[1][:3, 3]) / np.linalg.norm(results[1].T_world_cam[:3, 3])
+    true = (invert_T(poses[3]) @ poses[i])[:3, 3]
+    est = (invert_T(results[3].T_world_cam) @ results[i].T_world_cam)[:3, 3] * s
+    return float(np.linalg.norm(true - est))
+
+
+def test_the_frame_is_solved_through_the_last_frame_and_becomes_the_keyframe():
+    poses, res = _run(0.1)
+    assert [r.branch for r in res[1:4]] == [Branch.TWO_VIEW] * 3
+    assert res[4].branch == Branch.PNP and not res[4].is_keyframe and res[4].ref_index == 3
+    assert "flow against keyframe 3 lost" in res[5].reason and "solved through frame 4" in res[5].reason
+    assert res[5].is_keyframe and res[5].ref_index == 3
+    assert _step_error(poses, res, 5) < 0.02  # of a 1 m step
+    # the pose relative to the keyframe it names is consistent with the world pose
+    assert np.allclose(res[3].T_world_cam @ res[5].T_ref_cam, res[5].T_world_cam, atol=1e-9)
+
+
+def test_without_the_check_the_lost_flow_gives_a_wrong_pose():
+    """The control: the same run with the check off keeps the PnP on the lost flow."""
+    poses, res = _run(0.0)
+    assert res[5].branch == Branch.PNP and "lost" not in res[5].reason
+    assert _step_error(poses, res, 5) > 0.2
+
+
+def test_without_a_last_frame_to_go_through_the_pnp_pose_is_kept_and_marked_degraded():
+    """The flow is lost right after a new keyframe: nothing to go through, so the frame says so."""
+    poses = trajectory(STEPS)
+    odo = Odometry(CAMERA, LostPairFlow(poses, lost=(3, 4)), TriangulatedDepth((H, W)), make_config())
+    image = np.zeros((H, W, 3), np.uint8)
+    res = [odo.step(i, None, image) for i in range(len(poses))]
+    assert res[4].branch == Branch.PNP and res[4].stats.degraded
+    assert res[4].reason.endswith("flow against keyframe 3 lost (PnP " + str(res[4].stats.inliers) + " inliers, "
+                                  f"{100 * res[4].stats.inlier_ratio:.1f}% of its points): PnP pose kept")
+    assert not res[4].is_keyframe
