@@ -506,7 +506,8 @@ def compare(label_a: str, label_b: str, tolerance: float, min_diff: float) -> tu
         allowed = (lambda s: "n/a" if s.get("all_allowed_runs") is None
                    else f"{s['all_allowed_runs']}/{s['n_runs']}")
         lines.append(f"| {i} | {metric} | {_f(ea, '{:.3f}')} | {_f(eb, '{:.3f}')} | {_f(ratio)} | "
-                     f"{_f(wa, '{:.3f}')} | {_f(wb, '{:.3f}')} | {_f(a.get('fps'), '{:.1f}')} | {_f(b.get('fps'), '{:.1f}')} | {_f(fr)} | {allowed(a)} | "
+                     f"{_f(wa, '{:.3f}')} | {_f(wb, '{:.3f}')} | {_f(a.get('fps'), '{:.1f}')} | "
+                     f"{_f(b.get('fps'), '{:.1f}')} | {_f(fr)} | {allowed(a)} | "
                      f"{allowed(b)} | {'**' + ', '.join(verdict) + '**' if verdict else 'ok'} |")
     lines.append("")
     if only_a or only_b:

@@ -137,7 +137,6 @@ class Odometry:
         stats = {**stats, "degraded": True}
         return replace(sol, reason=f"{sol.reason}; {lost}: PnP pose kept"), m, ref, stats
 
-
     def _solve_to_keyframe(self, kf: Keyframe, m: Matches, cur: Keyframe, stats: dict, tm: StageTimer):
         """Our policy (``scale.source`` triangulation / keyframe-depth): ``(Solution, reference depth)``.
 
@@ -231,8 +230,8 @@ class Odometry:
         kf = self.keyframe
         is_keyframe = sol.tracks is not None
         self._new_keyframe_last = is_keyframe
-        held = not is_keyframe and sol.branch in (Branch.PNP, Branch.ROTATION) and not self._flow_lost(sol)
-        self._held_last = (frame_index, image, prepared, sol) if held else None
+        kept_keyframe = not is_keyframe and sol.branch in (Branch.PNP, Branch.ROTATION) and not self._flow_lost(sol)
+        self._held_last = (frame_index, image, prepared, sol) if kept_keyframe else None
         if is_keyframe:
             if sol.step_norm is not None:  # a handed-on keyframe (PnP / rotation) keeps the last step length
                 self.last_step_norm = sol.step_norm
