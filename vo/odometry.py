@@ -95,14 +95,27 @@ class Odometry:
         # guess: this frame ends like the last one (becomes the keyframe, or keeps it)
         self._compute_ahead(prepared if self._new_keyframe_last else kf.prepared, next_image)
         ref, stats = None, {}
+        cur = Keyframe(frame_index, image, prepared, np.eye(4), Tracks.empty())
+        keeps_keyframe = self.scale_source != "depth"  # "depth" solves every pair: no keyframe is held
         if m.idx.size < max(8, self.cfg.geometry.min_inliers):
-            sol = failed_solution(kf.T_world_cam, self.T_world_last, f"only {m.idx.size} reliable flow matches")
+            why = f"only {m.idx.size} reliable flow matches"
+            sol = failed_solution(kf.T_world_cam, self.T_world_last, why)
+            if keeps_keyframe:
+                again = self._through_last_frame(kf, cur, f"flow against keyframe {kf.index} lost ({why})", tm)
+                if again is not None:
+                    sol, m, ref, stats = again
         else:
             stats["mean_flow_px"] = float(m.flow_mag.mean())
-            cur = Keyframe(frame_index, image, prepared, np.eye(4), Tracks.empty())
             sol, ref = self._solve(kf, m, cur, stats, tm)
-            if self.scale_source != "depth" and self._flow_lost(sol):  # "depth" holds no keyframe
-                sol, m, ref, stats = self._through_last_frame(kf, cur, sol, m, ref, stats, tm)
+            if keeps_keyframe and self._flow_lost(sol):
+                lost = (f"flow against keyframe {kf.index} lost (PnP {sol.stats['inliers']} inliers, "
+                        f"{100 * sol.stats['inlier_ratio']:.1f}% of its points)")
+                again = self._through_last_frame(kf, cur, lost, tm)
+                if again is None:
+                    sol = replace(sol, reason=f"{sol.reason}; {lost}: PnP pose kept")
+                    stats = {**stats, "degraded": True}
+                else:
+                    sol, m, ref, stats = again
         return self._commit(frame_index, timestamp, image, prepared, m, ref, sol, stats, tm)
 
     def _flow_lost(self, sol: Solution) -> bool:
@@ -111,31 +124,28 @@ class Odometry:
         return (sol.branch == Branch.PNP and ratio is not None
                 and ratio < self.cfg.geometry.pnp_min_inlier_ratio)
 
-    def _through_last_frame(self, kf: Keyframe, cur: Keyframe, sol: Solution, m: Matches,
-                            ref: ReferenceDepth | None, stats: dict, tm: StageTimer):
-        """Solve the frame again against the last frame, when that one held the same keyframe: the
-        keyframe's depth is moved into the last frame by its pose, the frame is solved against it and
-        becomes the keyframe; its pose stays expressed in ``kf``. Without such a frame, or when that fails
-        too, the PnP pose is kept and marked degraded. Returns ``(sol, m, ref, stats)``."""
-        lost = (f"flow against keyframe {kf.index} lost (PnP {sol.stats['inliers']} inliers, "
-                f"{100 * sol.stats['inlier_ratio']:.1f}% of its points)")
-        last = self._held_last
-        if last is not None:
-            index, image, prepared, last_sol = last
-            moved = self.front.transfer_keyframe(kf, last_sol, "")
-            via = Keyframe(index, image, prepared, kf.T_world_cam @ last_sol.T_ref_cam, moved.tracks)
-            m2 = self.front.match(via, cur.prepared, tm)
-            if m2.idx.size >= max(8, self.cfg.geometry.min_inliers):
-                stats2 = {"mean_flow_px": float(m2.flow_mag.mean())}
-                sol2, ref2 = self._solve(via, m2, cur, stats2, tm)
-                if sol2.branch in (Branch.TWO_VIEW, Branch.PNP, Branch.ROTATION) and not self._flow_lost(sol2):
-                    if sol2.tracks is None:
-                        sol2 = self.front.transfer_keyframe(via, sol2, "")
-                    reason = f"{lost}: solved through frame {index}" + (f"; {sol2.reason}" if sol2.reason else "")
-                    return (replace(sol2, reason=reason, T_ref_cam=invert_T(kf.T_world_cam) @ sol2.T_world_cam),
-                            m2, ref2, stats2)
-        stats = {**stats, "degraded": True}
-        return replace(sol, reason=f"{sol.reason}; {lost}: PnP pose kept"), m, ref, stats
+    def _through_last_frame(self, kf: Keyframe, cur: Keyframe, lost: str, tm: StageTimer):
+        """Solve the frame ``cur`` again against the last frame, when that one held the keyframe ``kf``
+        whose flow is ``lost`` (the reason's first words): the keyframe's depth is moved into the last
+        frame by its pose, the frame is solved against it and becomes the keyframe; its pose stays
+        expressed in ``kf``. ``(Solution, Matches, reference depth, stats)``, or None without such a
+        frame or when that fails too."""
+        if self._held_last is None:
+            return None
+        index, image, prepared, last_sol = self._held_last
+        moved = self.front.transfer_keyframe(kf, last_sol, "")
+        via = Keyframe(index, image, prepared, kf.T_world_cam @ last_sol.T_ref_cam, moved.tracks)
+        m = self.front.match(via, cur.prepared, tm)
+        if m.idx.size < max(8, self.cfg.geometry.min_inliers):
+            return None
+        stats = {"mean_flow_px": float(m.flow_mag.mean())}
+        sol, ref = self._solve(via, m, cur, stats, tm)
+        if sol.branch not in (Branch.TWO_VIEW, Branch.PNP, Branch.ROTATION) or self._flow_lost(sol):
+            return None
+        if sol.tracks is None:
+            sol = self.front.transfer_keyframe(via, sol, "")
+        reason = f"{lost}: solved through frame {index}" + (f"; {sol.reason}" if sol.reason else "")
+        return replace(sol, reason=reason, T_ref_cam=invert_T(kf.T_world_cam) @ sol.T_world_cam), m, ref, stats
 
     def _solve_to_keyframe(self, kf: Keyframe, m: Matches, cur: Keyframe, stats: dict, tm: StageTimer):
         """Our policy (``scale.source`` triangulation / keyframe-depth): ``(Solution, reference depth)``.

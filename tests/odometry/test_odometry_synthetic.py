@@ -301,13 +301,16 @@ class LostPairFlow(BoxFlow):
     """:class:`BoxFlow`, except that the pair ``lost`` gets a random flow of up to 40 px that varies
     over ~30 px (PnP on it keeps 2.4 % of its points, like DIS past its range: 1-4 %)."""
 
-    def __init__(self, poses, lost: tuple[int, int]):
+    def __init__(self, poses, lost: tuple[int, int], outside: bool = False):
         super().__init__(poses)
         self.lost = lost
+        self.outside = outside  # True: every pixel's flow leaves the image instead
 
     def flow_pair(self, a, b):
         if (a, b) != self.lost:
             return super().flow_pair(a, b)
+        if self.outside:
+            return np.full((H, W, 2), 2.0 * W, np.float32), np.full((H, W, 2), -2.0 * W, np.float32)
         rng = np.random.default_rng(7)
         gy, gx = np.mgrid[0:H, 0:W] / 30.0
         fw = np.zeros((H, W, 2), np.float32)
@@ -368,3 +371,18 @@ def test_without_a_last_frame_to_go_through_the_pnp_pose_is_kept_and_marked_degr
     assert res[4].reason.endswith("flow against keyframe 3 lost (PnP " + str(res[4].stats.inliers) + " inliers, "
                                   f"{100 * res[4].stats.inlier_ratio:.1f}% of its points): PnP pose kept")
     assert not res[4].is_keyframe
+
+
+def test_a_frame_without_reliable_matches_against_the_held_keyframe_is_solved_through_the_last_frame():
+    """The flow against the keyframe leaves the image everywhere: no reliable match, which alone
+    would keep the last pose (FAILED); the last frame still has a flow."""
+    poses = trajectory(STEPS)
+    odo = Odometry(CAMERA, LostPairFlow(poses, lost=(3, 5), outside=True), TriangulatedDepth((H, W)),
+                   make_config())
+    image = np.zeros((H, W, 3), np.uint8)
+    res = [odo.step(i, None, image) for i in range(len(poses))]
+    assert res[4].branch == Branch.PNP and not res[4].is_keyframe
+    assert res[5].reason.startswith("flow against keyframe 3 lost (only ")
+    assert "reliable flow matches): solved through frame 4" in res[5].reason
+    assert res[5].branch == Branch.TWO_VIEW and res[5].is_keyframe and not res[5].stats.degraded
+    assert _step_error(poses, res, 5) < 0.02
