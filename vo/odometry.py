@@ -97,7 +97,7 @@ class Odometry:
         ref, stats = None, {}
         cur = Keyframe(frame_index, image, prepared, np.eye(4), Tracks.empty())
         keeps_keyframe = self.scale_source != "depth"  # "depth" solves every pair: no keyframe is held
-        if m.idx.size < max(8, self.cfg.geometry.min_inliers):
+        if self._too_few(m):
             why = f"only {m.idx.size} reliable flow matches"
             sol = failed_solution(kf.T_world_cam, self.T_world_last, why)
             if keeps_keyframe:
@@ -118,6 +118,10 @@ class Odometry:
                     sol, m, ref, stats = again
         return self._commit(frame_index, timestamp, image, prepared, m, ref, sol, stats, tm)
 
+    def _too_few(self, m: Matches) -> bool:
+        """Too few reliable matches to solve a frame pair."""
+        return m.idx.size < max(8, self.cfg.geometry.min_inliers)
+
     def _flow_lost(self, sol: Solution) -> bool:
         """A PnP that explains too small a share of its points: the flow against the keyframe is lost."""
         ratio = sol.stats.get("inlier_ratio")
@@ -136,7 +140,7 @@ class Odometry:
         moved = self.front.transfer_keyframe(kf, last_sol, "")
         via = Keyframe(index, image, prepared, kf.T_world_cam @ last_sol.T_ref_cam, moved.tracks)
         m = self.front.match(via, cur.prepared, tm)
-        if m.idx.size < max(8, self.cfg.geometry.min_inliers):
+        if self._too_few(m):
             return None
         stats = {"mean_flow_px": float(m.flow_mag.mean())}
         sol, ref = self._solve(via, m, cur, stats, tm)

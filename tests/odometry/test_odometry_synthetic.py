@@ -102,9 +102,12 @@ def make_config(seed: int = 0) -> Config:
     return merge_dict(Config(), {**TWO_VIEW, "sampling": {"seed": seed}}, "test")
 
 
-def run_odometry(poses: list[np.ndarray], noise_px: float = 0.0, seed: int = 0) -> list[FrameResult]:
-    flow = BoxFlow(poses, noise_px)
-    odo = Odometry(CAMERA, flow, TriangulatedDepth((H, W)), make_config(seed))
+def run_odometry(poses: list[np.ndarray], noise_px: float = 0.0, seed: int = 0, flow: BoxFlow | None = None,
+                 config: Config | None = None) -> list[FrameResult]:
+    """Every frame of ``poses`` through :class:`Odometry`; ``flow`` defaults to :class:`BoxFlow`
+    with ``noise_px``, ``config`` to :func:`make_config` with ``seed``."""
+    flow = BoxFlow(poses, noise_px) if flow is None else flow
+    odo = Odometry(CAMERA, flow, TriangulatedDepth((H, W)), make_config(seed) if config is None else config)
     image = np.zeros((H, W, 3), np.uint8)
     return [odo.step(i, None, image) for i in range(len(poses))]
 
@@ -327,12 +330,10 @@ STEPS = [([0.0, 0.01, 0.0], [0.0, 0.0, 1.0])] * 3 + [([0.0, 0.02, 0.0], [0.0, 0.
                                                       ([0.0, 0.01, 0.0], [0.05, 0.0, 1.0])]
 
 
-def _run(min_ratio: float):
+def _run(min_ratio: float = 0.1, lost: tuple[int, int] = (3, 5), outside: bool = False):
     poses = trajectory(STEPS)
     cfg = merge_dict(make_config(), {"geometry": {"pnp_min_inlier_ratio": min_ratio}}, "test")
-    odo = Odometry(CAMERA, LostPairFlow(poses, lost=(3, 5)), TriangulatedDepth((H, W)), cfg)
-    image = np.zeros((H, W, 3), np.uint8)
-    return poses, [odo.step(i, None, image) for i in range(len(poses))]
+    return poses, run_odometry(poses, flow=LostPairFlow(poses, lost, outside), config=cfg)
 
 
 def _step_error(poses, results, i: int) -> float:
@@ -363,10 +364,7 @@ def test_without_the_check_the_lost_flow_gives_a_wrong_pose():
 
 def test_without_a_last_frame_to_go_through_the_pnp_pose_is_kept_and_marked_degraded():
     """The flow is lost right after a new keyframe: nothing to go through, so the frame says so."""
-    poses = trajectory(STEPS)
-    odo = Odometry(CAMERA, LostPairFlow(poses, lost=(3, 4)), TriangulatedDepth((H, W)), make_config())
-    image = np.zeros((H, W, 3), np.uint8)
-    res = [odo.step(i, None, image) for i in range(len(poses))]
+    _, res = _run(lost=(3, 4))
     assert res[4].branch == Branch.PNP and res[4].stats.degraded
     assert res[4].reason.endswith("flow against keyframe 3 lost (PnP " + str(res[4].stats.inliers) + " inliers, "
                                   f"{100 * res[4].stats.inlier_ratio:.1f}% of its points): PnP pose kept")
@@ -376,11 +374,7 @@ def test_without_a_last_frame_to_go_through_the_pnp_pose_is_kept_and_marked_degr
 def test_a_frame_without_reliable_matches_against_the_held_keyframe_is_solved_through_the_last_frame():
     """The flow against the keyframe leaves the image everywhere: no reliable match, which alone
     would keep the last pose (FAILED); the last frame still has a flow."""
-    poses = trajectory(STEPS)
-    odo = Odometry(CAMERA, LostPairFlow(poses, lost=(3, 5), outside=True), TriangulatedDepth((H, W)),
-                   make_config())
-    image = np.zeros((H, W, 3), np.uint8)
-    res = [odo.step(i, None, image) for i in range(len(poses))]
+    poses, res = _run(outside=True)
     assert res[4].branch == Branch.PNP and not res[4].is_keyframe
     assert res[5].reason.startswith("flow against keyframe 3 lost (only ")
     assert "reliable flow matches): solved through frame 4" in res[5].reason
