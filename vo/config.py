@@ -197,6 +197,14 @@ class GeometryConfig(_Section):
     min_inliers: int = _opt(100, "fewest reliable matches / inliers to accept a frame pair", range=_Range(8))
     min_angle_rad: float = _opt(1e-3, "triangulated rays meeting at a smaller angle (radians) are dropped",
                                 range=_Range(0.0))
+    epipolar_correction: bool = _opt(False, "move each match onto its epipolar line before triangulating (the "
+                                            "noise across the line is not parallax)")
+    min_local_angle_rad: float = _opt(0.0, "drop triangulated points whose image cell sees the scene at a median "
+                                           "ray angle under this (radians; 0 = off)", range=_Range(0.0))
+    local_angle_keep: float = _opt(0.75, "the cell floor is lowered so that a step keeps at least this share of "
+                                         "its points", range=_Range(0.0, 1.0))
+    local_angle_cell_px: float = _opt(32.0, "side of the image cells of min_local_angle_rad, in pixels",
+                                      range=_Range(1.0))
     pnp_reproj_px: float = _opt(1.0, "PnP RANSAC reprojection threshold in pixels", range=_Range(0.0, lo_open=True))
     pnp_min_inlier_ratio: float = _opt(0.1, "a PnP against a held keyframe with a smaller share of its points as "
                                             "inliers means the flow against the keyframe was lost: the frame is "

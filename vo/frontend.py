@@ -25,8 +25,11 @@ from trianflow_vo.depth.fusion import fuse_log_depth
 from trianflow_vo.flow.base import FlowSource
 from trianflow_vo.flow.masks import flow_scores
 from trianflow_vo.frame import Branch
-from trianflow_vo.geometry.epipolar import epipolar_distance_map, inlier_score, sampson_distance
+from trianflow_vo.geometry.epipolar import (epipolar_distance_map, inlier_score, project_to_epipolar_line,
+                                            sampson_distance)
+from trianflow_vo.geometry.fundamental import fundamental_from_pose
 from trianflow_vo.geometry.model_selection import direction_sigma, select_motion_model
+from trianflow_vo.geometry.parallax import local_angle_floor
 from trianflow_vo.geometry.pnp import solve_pnp
 from trianflow_vo.geometry.relative_pose import estimate_relative_pose
 from trianflow_vo.geometry.rotation import fit_rotation
@@ -304,9 +307,22 @@ class FrontEnd:
         idx2 = self.draw(score2, self.cfg.sampling.n_samples, anchors)
         t0 = tm.add("redraw", t0)
         q1, q2 = self.pixels(idx2, m.fw)
-        X, valid, angle = triangulate_midpoint(q1, q2, self.K, rel.R, rel.t, min_angle=g.min_angle_rad)
+        X, valid, angle = self._triangulate_rays(q1, q2, rel.R, rel.t)
         tm.add("triangulate", t0)
         return idx2, q1, q2, X, valid, angle
+
+    def _triangulate_rays(self, q1: np.ndarray, q2: np.ndarray, R: np.ndarray, t_unit: np.ndarray):
+        """Mid-point triangulation of matches ``q1``, ``q2`` ``(N, 2)`` under ``X2 = R X1 + t_unit``,
+        with the optional epipolar correction and cell floor of ``geometry`` (both off by default):
+        ``(X (N, 3), valid (N,), angle (N,))``."""
+        g = self.cfg.geometry
+        if g.epipolar_correction:
+            q2 = project_to_epipolar_line(fundamental_from_pose(R, t_unit, self.K), q1, q2)
+        X, valid, angle = triangulate_midpoint(q1, q2, self.K, R, t_unit, min_angle=g.min_angle_rad)
+        if g.min_local_angle_rad > 0:
+            valid, _ = local_angle_floor(angle, q1, valid, g.min_local_angle_rad, g.local_angle_keep,
+                                         g.local_angle_cell_px)
+        return X, valid, angle
 
     def _solution(self, keyframe: Keyframe, branch: Branch, how: str, R: np.ndarray, t_s: np.ndarray,
                   X_s: np.ndarray, idx: np.ndarray, q1: np.ndarray, q2: np.ndarray, weight: np.ndarray,
@@ -363,7 +379,7 @@ class FrontEnd:
                                     {"inliers": n_in, "pnp_ratio": ratio})
                 if disagrees:
                     R, t_unit, scale = Rp, tp / tn, tn
-                    X, valid, angle = triangulate_midpoint(q1, q2, K, R, t_unit, min_angle=g.min_angle_rad)
+                    X, valid, angle = self._triangulate_rays(q1, q2, R, t_unit)
                     d_ref, w_ref, w_new, w_scale = self._depths_at(ref, idx2, valid, angle)
                     branch = Branch.PNP
                     how = f"two-view scale disagreed with PnP by {ratio:.2f}x: PnP pose used"

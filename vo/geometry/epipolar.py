@@ -67,3 +67,31 @@ def epipolar_distance_map(F: np.ndarray, flow: np.ndarray) -> np.ndarray:
     c = F[2, 0] * gx + F[2, 1] * gy + F[2, 2]
     num = np.abs(a * (gx + flow[..., 0]) + b * (gy + flow[..., 1]) + c)
     return num / (np.sqrt(a * a + b * b) + 1e-12)
+
+
+def project_to_epipolar_line(F: np.ndarray, pts1: np.ndarray, pts2: np.ndarray) -> np.ndarray:
+    """``pts2`` ``(N, 2)`` moved to the nearest point of their epipolar lines ``F @ pts1``.
+
+    For matches whose first point is exact (a dense flow sampled at the keyframe's own
+    pixels), all measurement noise is in ``pts2``; the noise across the line is not
+    parallax, and removing it keeps it out of the triangulated ray angle.
+
+    Args:
+        F: ``(3, 3)`` with ``x2^T F x1 = 0``.
+        pts1: ``(N, 2)`` pixels in image 1.
+        pts2: ``(N, 2)`` pixels in image 2.
+
+    Returns:
+        ``(N, 2)`` float64 points on the lines; a point whose line is degenerate
+        (the epipole itself) is returned unchanged.
+    """
+    if F.shape != (3, 3):
+        raise ValueError(f"F must be (3, 3), got {F.shape}")
+    x1 = _homog(np.asarray(pts1, dtype=np.float64))
+    p2 = np.asarray(pts2, dtype=np.float64)
+    lines = x1 @ F.T
+    n2 = lines[:, 0] ** 2 + lines[:, 1] ** 2
+    ok = n2 > 1e-24
+    r = (lines[:, 0] * p2[:, 0] + lines[:, 1] * p2[:, 1] + lines[:, 2]) / np.where(ok, n2, 1.0)
+    r = np.where(ok, r, 0.0)
+    return p2 - r[:, None] * lines[:, :2]
