@@ -15,7 +15,8 @@ Cases:
   source changes), stride 1 x ``--seeds``; for each, the branches the tool may take and
   whether every frame took one of them;
 - if the folder exists, every sequence under ``--bench-data`` (default ``../bench_data`` beside the repository, or ``$TRIANFLOW_BENCH_DATA``:
-  real clips not used for tuning), x ``--strides`` x ``--seeds``.
+  real clips not used for tuning; ``benchmarks/unseen_clips.py`` writes the two the tables use),
+  x ``--strides`` x ``--seeds``.
 
 Per run: frames, ground-truth path length, ATE RMSE and ATE as % of the path, branch
 counts (``run.json``), frames/s and median ms per frame (``run.json``), peak RSS
