@@ -39,9 +39,11 @@ from pathlib import Path
 
 import numpy as np
 
+from trianflow_vo.observer import Observer
+
 
 @dataclass
-class KeyframeDepths:
+class KeyframeDepths(Observer):
     """What the observer keeps: per keyframe source index, its gray image, the branch of the
     frame that made it, and the carried depth (``(M,)`` flat pixel indices and depths)."""
 
@@ -49,15 +51,6 @@ class KeyframeDepths:
     how: dict = field(default_factory=dict)
     depth: dict = field(default_factory=dict)
     K: np.ndarray | None = None
-
-    def on_start(self, n_frames):
-        pass
-
-    def on_poses_revised(self, revised):
-        pass
-
-    def close(self, interrupted=False):
-        pass
 
     def on_frame(self, result):
         import cv2
