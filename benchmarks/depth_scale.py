@@ -107,13 +107,15 @@ def units_per_metre(kd: KeyframeDepths, T_world_cam: np.ndarray, min_baseline: f
 
 
 def load_kitti_poses(path: Path) -> np.ndarray:
-    """``(n, 4, 4)`` camera-to-world poses from a KITTI pose file (12 numbers a line)."""
-    a = np.loadtxt(path, ndmin=2)
-    if a.shape[1] != 12:
-        raise ValueError(f"{path}: expected 12 numbers a line (KITTI layout), got {a.shape[1]}")
-    T = np.tile(np.eye(4), (len(a), 1, 1))
-    T[:, :3] = a.reshape(-1, 3, 4)
-    return T
+    """``(n, 4, 4)`` camera-to-world poses from a KITTI pose file (12 numbers a line, line i =
+    frame i), read and checked by the tool's own reader (an ``InputError`` names the file and
+    line); another valid layout (TUM, indexed KITTI) is refused with a ``ValueError``."""
+    from trianflow_vo.io.trajectory import read_trajectory
+
+    traj = read_trajectory(path)
+    if traj.kind != "kitti":
+        raise ValueError(f"{path}: a {traj.kind} trajectory; this tool needs the KITTI layout (line i = frame i)")
+    return traj.poses
 
 
 def main(argv=None) -> int:

@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from trianflow_vo.io.trajectory import format_kitti_line, quaternion_to_rotation
+
 REPO = Path(__file__).resolve().parents[1]
 KITTI07_DIR = "data/KITTI07"
 TEDDY_DIR = "Exercises/Exercise4/assets/rgbd_dataset_freiburg3_teddy"
@@ -58,18 +60,6 @@ def read_from_clone(clone: Path, path: str) -> bytes:
     return out.stdout
 
 
-def quaternion_matrix(q_xyzw: np.ndarray) -> np.ndarray:
-    """``(N, 3, 3)`` rotations of unit quaternions ``(N, 4)`` in TUM order ``(qx, qy, qz, qw)``."""
-    q = np.asarray(q_xyzw, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    x, y, z, w = q.T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-    ], 1)
-
-
 def nearest_poses(stamps: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, float]:
     """Camera-to-world poses ``(N, 3, 4)`` at image times ``stamps`` ``(N,)`` from the nearest row
     of a TUM ground truth ``gt`` ``(M, 8)`` (``t tx ty tz qx qy qz qw``), and the largest time gap
@@ -84,7 +74,8 @@ def nearest_poses(stamps: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, float
     if len(gt) > 1:
         j = np.where(np.abs(gt[j - 1, 0] - stamps) <= np.abs(gt[j, 0] - stamps), j - 1, j)
     rows = gt[j]
-    poses = np.concatenate([quaternion_matrix(rows[:, 4:8]), rows[:, 1:4, None]], axis=2)
+    R = np.array([quaternion_to_rotation(q) for q in rows[:, 4:8]]).reshape(-1, 3, 3)
+    poses = np.concatenate([R, rows[:, 1:4, None]], axis=2)
     return poses, float(np.max(np.abs(rows[:, 0] - stamps))) if len(stamps) else 0.0
 
 
@@ -93,7 +84,7 @@ def _table(text: str) -> list[list[str]]:
 
 
 def _write_poses(path: Path, poses: np.ndarray) -> None:
-    path.write_text("".join(" ".join(f"{v:.9e}" for v in P.ravel()) + "\n" for P in poses))
+    path.write_text("".join(format_kitti_line(P) + "\n" for P in poses))
 
 
 def build_kitti07(clone: Path, kitti_gt: Path, out: Path) -> Path:

@@ -60,7 +60,13 @@ def test_kitti_poses_are_checked(ds, tmp_path):
     good.write_text("1 0 0 1 0 1 0 2 0 0 1 3\n")
     T = ds.load_kitti_poses(good)
     assert T.shape == (1, 4, 4) and T[0, :3, 3].tolist() == [1.0, 2.0, 3.0] and T[0, 3, 3] == 1.0
+    tum = tmp_path / "tum.txt"
+    tum.write_text("0.0 1 2 3 0 0 0 1\n")
+    with pytest.raises(ValueError, match="KITTI layout"):
+        ds.load_kitti_poses(tum)
+    from trianflow_vo.errors import InputError
+
     bad = tmp_path / "bad.txt"
     bad.write_text("1 2 3 4 5 6 7\n")
-    with pytest.raises(ValueError, match="KITTI layout"):
+    with pytest.raises(InputError, match="bad.txt:1"):
         ds.load_kitti_poses(bad)

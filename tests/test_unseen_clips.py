@@ -20,11 +20,12 @@ def uc():
     return mod
 
 
-def test_quaternion_matrix_known_rotations(uc):
+def test_rotations_of_known_quaternions(uc):
     s = np.sqrt(0.5)
-    R = uc.quaternion_matrix(np.array([[0.0, 0.0, s, s], [0.0, 0.0, 0.0, 2.0]]))  # 90 deg about z; identity unnormalised
-    assert np.allclose(R[0], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
-    assert np.allclose(R[1], np.eye(3))
+    gt = np.array([[1.0, 0, 0, 0, 0.0, 0.0, s, s], [2.0, 0, 0, 0, 0.0, 0.0, 0.0, 2.0]])  # 90 deg about z; identity unnormalised
+    poses, _ = uc.nearest_poses(np.array([1.0, 2.0]), gt)
+    assert np.allclose(poses[0, :, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
+    assert np.allclose(poses[1, :, :3], np.eye(3))
 
 
 def test_nearest_poses_takes_the_closest_sample_and_reports_the_gap(uc):
