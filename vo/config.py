@@ -234,6 +234,12 @@ class ScaleConfig(_Section):
                             range=_Range(0.0, lo_open=True))
     pnp_check_ratio: float = _opt(1.5, "PnP replaces the two-view step when their scales differ by more than "
                                        "this factor; 0 = no check", check=_ratio_or_off, rule="0 (off) or > 1")
+    pnp_check_ratio_low: float = _opt(1.15, "the same check's factor for a two-view step on a median parallax "
+                                            "(rotation removed) under pnp_check_low_parallax_px, where the step's "
+                                            "own scale is the less reliable one; 0 = such steps are not checked",
+                                      check=_ratio_or_off, rule="0 (off) or > 1")
+    pnp_check_low_parallax_px: float = _opt(8.0, "median parallax in pixels under which pnp_check_ratio_low applies; "
+                                                 "0 = pnp_check_ratio for every step", range=_Range(0.0))
 
 
 @dataclass(frozen=True)

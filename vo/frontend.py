@@ -147,6 +147,23 @@ def step_scale(scale: float, scale_ok: bool, last_step_norm: float | None) -> tu
     return last_step_norm, "scale lost (too few points with depth): constant speed assumed", True
 
 
+def pnp_check_limit(parallax_px: float | None, ratio: float, ratio_low: float, low_parallax_px: float) -> float:
+    """The factor by which a two-view step's length may differ from PnP's on the same keyframe
+    depth before PnP replaces it (``scale.pnp_check_*``); 0 = the step is not checked.
+
+    A two-view step's scale comes from triangulating its own matches, whose error grows as
+    the parallax (rotation removed) shrinks; PnP's comes from the carried depth alone. Under
+    ``low_parallax_px`` of median parallax ``parallax_px`` the tighter ``ratio_low`` applies,
+    else ``ratio`` (also when the parallax is not known: None). ``ratio`` 0 turns the
+    check off for every step.
+    """
+    if ratio <= 0:
+        return 0.0
+    if parallax_px is not None and parallax_px < low_parallax_px:
+        return ratio_low
+    return ratio
+
+
 class FrontEnd:
     """Solves one frame against the reference keyframe (TrianFlow's per-pair recipe).
 
@@ -338,13 +355,16 @@ class FrontEnd:
                         tracks=tracks, step_norm=float(np.linalg.norm(t_s)))
 
     def two_view(self, keyframe: Keyframe, ref: ReferenceDepth | None, m: Matches, R_rot: np.ndarray,
-                 last_step_norm: float | None, tm: StageTimer, estimated=None) -> Solution:
+                 last_step_norm: float | None, tm: StageTimer, estimated=None,
+                 parallax_px: float | None = None) -> Solution:
         """Relative pose from the matches, mid-point triangulation, scale from the keyframe depth.
 
         Falls back to :meth:`small_motion` when the geometry is degenerate. On
         success the current frame becomes the keyframe: the solution carries its
         :class:`~trianflow_vo.keyframe.Tracks` (the triangulated points, with the
-        ids of the tracks they continue)."""
+        ids of the tracks they continue). ``parallax_px``: the matches' median parallax
+        with rotation removed, which sets how far the step's scale may differ from PnP's
+        (:func:`pnp_check_limit`)."""
         g, K = self.cfg.geometry, self.K
         rel, n_in = estimated if estimated is not None else self._relative_pose(m, tm)
         if rel is None:
@@ -361,7 +381,9 @@ class FrontEnd:
         if ref is not None:
             scale, scale_ok = align_scale(X[valid, 2], d_ref, weights=w_scale, min_points=self.cfg.scale.min_points)
             stats["scale_points"] = int((d_ref > 0).sum())
-        if scale_ok and self.cfg.scale.pnp_check_ratio > 0:
+        sc = self.cfg.scale
+        limit = pnp_check_limit(parallax_px, sc.pnp_check_ratio, sc.pnp_check_ratio_low, sc.pnp_check_low_parallax_px)
+        if scale_ok and limit > 0:
             # a two-view step on a short baseline can get the translation direction, and so the
             # scale, badly wrong; PnP on the same depth says how far the camera really moved
             Xp, _, q2p = self.pnp_inputs(ref, m, m.score)
@@ -370,19 +392,20 @@ class FrontEnd:
             if okp and tn > 0:
                 ratio = tn / scale
                 stats["pnp_ratio"] = ratio
-                disagrees = abs(np.log(ratio)) > np.log(self.cfg.scale.pnp_check_ratio)
+                disagrees = abs(np.log(ratio)) > np.log(limit)
+                why = f"two-view scale disagreed with PnP by {ratio:.2f}x (limit {limit:g}x"
+                why += ")" if parallax_px is None else f" at {parallax_px:.2f} px of parallax)"
                 if disagrees and self.cfg.keyframes.policy == "gric":
                     # the two-view step is not to be trusted: PnP on the held keyframe, no new keyframe
                     T_ref_cam = invert_T(make_T(Rp, tp))
-                    return Solution(Branch.PNP, f"two-view scale disagreed with PnP by {ratio:.2f}x: PnP pose, "
-                                    "keyframe kept", keyframe.T_world_cam @ T_ref_cam, T_ref_cam,
-                                    {"inliers": n_in, "pnp_ratio": ratio})
+                    return Solution(Branch.PNP, f"{why}: PnP pose, keyframe kept", keyframe.T_world_cam @ T_ref_cam,
+                                    T_ref_cam, {"inliers": n_in, "pnp_ratio": ratio})
                 if disagrees:
                     R, t_unit, scale = Rp, tp / tn, tn
                     X, valid, angle = self._triangulate_rays(q1, q2, R, t_unit)
                     d_ref, w_ref, w_new, w_scale = self._depths_at(ref, idx2, valid, angle)
                     branch = Branch.PNP
-                    how = f"two-view scale disagreed with PnP by {ratio:.2f}x: PnP pose used"
+                    how = f"{why}: PnP pose used"
         scale, lost, degraded = step_scale(scale, scale_ok, last_step_norm)
         how = how or lost
         if degraded:

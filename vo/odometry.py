@@ -172,7 +172,7 @@ class Odometry:
             if parallax < kc.min_parallax_px:
                 why = f"parallax {parallax:.2f} px < {kc.min_parallax_px} px"
                 return self.front.small_motion(kf, ref, m, R_rot, why, tm), ref
-            return self.front.two_view(kf, ref, m, R_rot, self.last_step_norm, tm), ref
+            return self.front.two_view(kf, ref, m, R_rot, self.last_step_norm, tm, parallax_px=parallax), ref
         rel, n_in, test, dir_sigma = self.front.motion_test(m, par, tm)
         why = ""
         if rel is None:
@@ -185,7 +185,8 @@ class Odometry:
         if why:
             sol = self.front.small_motion(kf, ref, m, R_rot, why, tm)
         else:
-            sol = self.front.two_view(kf, ref, m, R_rot, self.last_step_norm, tm, estimated=(rel, n_in))
+            sol = self.front.two_view(kf, ref, m, R_rot, self.last_step_norm, tm, estimated=(rel, n_in),
+                                      parallax_px=parallax)
         mean_flow = float(m.flow_mag.mean())
         # the flow against a held keyframe grows with every frame: hand the keyframe's depth on to
         # this frame once the flow passes max_flow_fraction of the width, or when the next frame's

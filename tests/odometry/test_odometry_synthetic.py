@@ -20,6 +20,8 @@ from trianflow_vo.depth.triangulated import TriangulatedDepth
 from trianflow_vo.frame import Branch, FrameResult
 from trianflow_vo.geometry.se3 import invert_T, make_T, rodrigues, rotation_angle
 from trianflow_vo.odometry import Odometry
+from trianflow_vo import frontend
+from trianflow_vo.frontend import pnp_check_limit
 
 H, W = 160, 512
 K = np.array([[300.0, 0.0, 255.5], [0.0, 300.0, 79.5], [0.0, 0.0, 1.0]])
@@ -397,3 +399,40 @@ def test_cell_floor_and_epipolar_correction_reach_the_triangulation():
     corrected = run_odometry(poses, noise_px=0.5, config=merge_dict(
         make_config(0), {"geometry": {"epipolar_correction": True}}, "test"))
     check_chain(poses, corrected, speeds, rot_deg=0.1, dir_deg=1.0, ratio_rel=0.02)
+
+
+# -- the PnP check of a two-view step, tighter at low parallax -------------------------------------------------
+@pytest.mark.parametrize("parallax, expected", [(None, 1.5), (0.5, 1.15), (7.99, 1.15), (8.0, 1.5), (40.0, 1.5)])
+def test_pnp_check_limit_is_tighter_under_the_low_parallax_threshold(parallax, expected):
+    assert pnp_check_limit(parallax, 1.5, 1.15, 8.0) == expected
+
+
+def test_pnp_check_limit_settings_that_turn_it_off():
+    assert pnp_check_limit(2.0, 0.0, 1.15, 8.0) == 0.0  # no check at all
+    assert pnp_check_limit(2.0, 1.5, 0.0, 8.0) == 0.0  # low-parallax steps unchecked
+    assert pnp_check_limit(2.0, 1.5, 1.15, 0.0) == 1.5  # one ratio for every step
+
+
+def test_a_low_parallax_two_view_step_is_held_to_the_tighter_pnp_check(monkeypatch):
+    """PnP made to say the camera moved 1.3x as far as the two-view step says: at the box's
+    2-3 px of parallax the default check (1.15x under 8 px) replaces the step by PnP's pose
+    and keeps the keyframe, with the limit and the parallax in the reason; with one ratio for every step (1.5x) the
+    two-view step stands and records the ratio."""
+    real = frontend.solve_pnp
+
+    def longer(*args, **kwargs):
+        (R, t, inliers), ok = real(*args, **kwargs)
+        return (R, 1.3 * t, inliers), ok
+
+    monkeypatch.setattr(frontend, "solve_pnp", longer)
+    poses = trajectory([([0.0, YAW, 0.0], DIRECTION)] * 2)
+    tight = run_odometry(poses)
+    assert tight[2].stats.parallax_px < 8.0
+    assert tight[2].branch is Branch.PNP, tight[2].reason
+    assert "disagreed with PnP by 1.30x (limit 1.15x at" in tight[2].reason
+    assert tight[2].reason.endswith("PnP pose, keyframe kept") and not tight[2].is_keyframe
+    loose = run_odometry(poses, config=merge_dict(make_config(0), {"scale": {"pnp_check_low_parallax_px": 0.0}},
+                                                  "test"))
+    assert loose[2].branch is Branch.TWO_VIEW, loose[2].reason
+    assert loose[2].stats.pnp_ratio == pytest.approx(1.3, rel=0.01)
+    check_chain(poses, loose, (1.0, 1.0), rot_deg=0.01, dir_deg=0.1, ratio_rel=0.002)
