@@ -22,6 +22,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
+from synthetic_sequences import make_sequence
 from trianflow_vo.cli.main import main
 
 FAST = ("--end", "9", "--stride", "2", "--no-plot")  # 5 frames at the default size
@@ -206,26 +207,29 @@ def test_rerun_problems_leave_no_default_folder(sample_seq, tmp_path, monkeypatc
 # --------------------------------------------------------------------------- 3. disk full
 
 
-def test_file_size_limit_keeps_whole_lines_and_names_the_file(sample_seq, tmp_path):
-    """A real short write: RLIMIT_FSIZE lets poses.txt grow to 9000 bytes (a whole number of lines and a part);
-    the other files (config.yaml with its comments, run.json) stay under it."""
+def test_file_size_limit_keeps_whole_lines_and_names_the_file(tmp_path):
+    """A real short write: RLIMIT_FSIZE lets poses.txt grow to 12000 bytes (a whole number of lines and a part);
+    the other files (config.yaml with its comments, about 9.2 kB, and run.json, about 5 kB) stay under it. The shipped
+    sample is too short for that (50 frames, about 9.8 kB of poses), so the run is a rendered 90-frame clip."""
     resource = pytest.importorskip("resource")
+    seq = tmp_path / "seq"
+    make_sequence("urban_turn", seq, n_frames=90, seed=2, size=(128, 384))  # a small run.json
     out = tmp_path / "out"
-    limit = 9000
+    limit = 12000
 
     def limit_files():
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # EFBIG instead of being killed
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
 
-    p = subprocess.run([sys.executable, "-B", "-m", "trianflow_vo.cli", "run", str(sample_seq), *SMALL,
-                        "--end", "48", "--no-plot", "-q", "--out", str(out)],
+    p = subprocess.run([sys.executable, "-B", "-m", "trianflow_vo.cli", "run", str(seq),
+                        "--no-plot", "-q", "--out", str(out)],
                        cwd=tmp_path, capture_output=True, text=True, timeout=120, preexec_fn=limit_files)
     assert p.returncode == 1, p.stderr
     err = [ln for ln in p.stderr.splitlines() if ln.strip()]
     assert err == [f"Error: {out / 'poses.txt'}: File too large"], p.stderr
     poses = lines(out / "poses.txt")
     raw = (out / "poses.txt").read_bytes()
-    assert len(raw) <= limit and raw.endswith(b"\n") and 30 < len(poses) < 48  # whole lines up to the limit
+    assert len(raw) <= limit and raw.endswith(b"\n") and 30 < len(poses) < 90  # whole lines up to the limit
     assert all(len(x.split()) == 12 for x in poses)
     assert len(lines(out / "frames.txt")) == len(poses) == len(lines(out / "frames.tsv")) - 1
     doc = status(out)
