@@ -66,9 +66,12 @@ class OverruleWatch:
     """Notices a keyframe whose carried depth keeps contradicting the two-view geometry.
 
     A two-view step whose length PnP on the keyframe's depth contradicts (the
-    ``scale.pnp_check_ratio`` guard) is replaced by the PnP pose: a frame of branch
-    ``pnp`` with a ``pnp_ratio``. A few in a row are routine on short indoor
-    baselines (at most 5 on the shared clips with the default settings); many in a
+    ``scale.pnp_check_ratio`` guard, or ``scale.pnp_check_ratio_low`` under
+    ``scale.pnp_check_low_parallax_px`` of parallax) is replaced by the PnP pose: a
+    frame of branch ``pnp`` with a ``pnp_ratio``. A few in a row are routine on short
+    indoor baselines; with the default settings a streak reaches 10 in 3 of the 66
+    runs of the robustness table, which end at 2.06, 0.60 and 0.70 % ATE (the first
+    the worst seed of 7-Scenes stride 1; ``benchmarks/ROBUSTNESS.md``, 2026-12-05). Many in a
     row mean the depth itself has probably gone wrong (seen: 34 frames at 2-19 px of
     parallax, PnP saying 0.03-0.3x the two-view length, after which the scale
     collapsed), and every pose solved from it is suspect. ``update`` returns a
