@@ -210,7 +210,7 @@ def test_rerun_problems_leave_no_default_folder(sample_seq, tmp_path, monkeypatc
 def test_file_size_limit_keeps_whole_lines_and_names_the_file(tmp_path):
     """A real short write: RLIMIT_FSIZE lets poses.txt grow to 12000 bytes (a whole number of lines and a part);
     the other files (config.yaml with its comments, about 9.2 kB, and run.json, about 5 kB) stay under it. The shipped
-    sample is too short for that (50 frames, about 9.8 kB of poses), so the run is a rendered 90-frame clip."""
+    sample is too short for that (48 frames, about 9.5 kB of poses), so the run is a rendered 90-frame clip."""
     resource = pytest.importorskip("resource")
     seq = tmp_path / "seq"
     make_sequence("urban_turn", seq, n_frames=90, seed=2, size=(128, 384))  # a small run.json
