@@ -171,7 +171,7 @@ def _run(seq: Path, out_dir: Path, config: Config, observers: list[Observer], od
     extra: list[Observer] = list(observers)
     all_obs: list[Observer] = []
     trajectory = Trajectory()
-    watch = OverruleWatch()
+    watch = OverruleWatch(ratio=config.scale.pnp_check_ratio)
     interrupted, error, signame = False, None, None
     try:
         writer = RunWriter(out_dir, info, runlog, clock=clock)
