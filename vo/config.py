@@ -294,6 +294,10 @@ class BackendConfig(_Section):
     max_tracks: int = _opt(250, "most tracks alive at once", range=_Range(10, 100000))
     cell_px: int = _opt(32, "grid cell (pixels) over which new tracks are spread, one per cell",
                         range=_Range(2, 1024))
+    track_texture_px: int = _opt(9, "a new track starts at the match of its grid cell with the most texture: the "
+                                    "smaller eigenvalue of the image gradients' covariance over a block of this "
+                                    "many pixels (about DIS's patch); 0 = the first match drawn",
+                                 range=_Range(0, 31))
     track_fb_px: float = _opt(1.0, "a track ends where the flow's forward-backward distance reaches this (pixels)",
                               range=_Range(0.0, lo_open=True))
     track_epi_px: float = _opt(1.0, "a track ends where its new pixel is this far (Sampson, pixels) from the "

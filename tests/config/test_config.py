@@ -35,7 +35,7 @@ DEFAULTS = {
     "keyframes": {"static_flow_px": 0.25, "policy": "gric", "min_parallax_px": 3.0, "max_direction_deg": 0.5,
                   "max_flow_fraction": 0.1, "max_next_flow_fraction": 0.125, "noise_floor_px": 0.1, "independent_matches": 500},
     "backend": {"kind": "window-ba", "window": 6, "fixed": 2,
-                "huber_px": 1.0, "max_iterations": 5, "every": 2, "max_tracks": 250, "cell_px": 32,
+                "huber_px": 1.0, "max_iterations": 5, "every": 2, "max_tracks": 250, "cell_px": 32, "track_texture_px": 9,
                 "track_fb_px": 1.0, "track_epi_px": 1.0, "outlier_px": 3.0, "min_points": 30, "step_factors": True,
                 "step_rot_deg": 0.05, "step_trans": 0.02, "step_trans_pnp": 1.0, "rescale_depth": False,
                 "concurrent": True, "max_shift": 0.5, "max_rotation_deg": 3.0},

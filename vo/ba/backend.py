@@ -45,7 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from trianflow_vo.backend import PoseRevision
-from trianflow_vo.ba.tracks import TrackTable
+from trianflow_vo.ba.tracks import TrackTable, texture_score
 from trianflow_vo.ba.worker import init_worker, solve_timed, warm_up
 from trianflow_vo.config import BackendConfig
 from trianflow_vo.frame import Branch, FrameResult
@@ -130,7 +130,7 @@ class WindowBackend:
         # keyframe -> (its reference, front-end T_ref_cam, solved by two-view geometry)
         self.steps: dict[int, tuple[int, np.ndarray, bool]] = {}
         self.stats = {"solves": 0, "failures": 0, "rejected": 0, "skipped": 0, "revisions": 0, "tracks_ended": 0,
-                      "track_resets": 0, "depth_rescales": 0}
+                      "track_resets": 0, "depth_rescales": 0, "unscored_births": 0}
         self._ms: list[float] = []
         self._points: list[int] = []
         self._factors: list[int] = []
@@ -194,7 +194,7 @@ class WindowBackend:
             "name": self.name, "window": c.window, "fixed": c.fixed,
             "concurrent": self.concurrent,
             "huber_px": c.huber_px, "max_iterations": c.max_iterations, "every": c.every,
-            "max_tracks": c.max_tracks, "cell_px": c.cell_px,
+            "max_tracks": c.max_tracks, "cell_px": c.cell_px, "track_texture_px": c.track_texture_px,
             "track_fb_px": c.track_fb_px, "track_epi_px": c.track_epi_px, "outlier_px": c.outlier_px,
             **self.stats,
             "ms_total": float(np.sum(self._ms)) if self._ms else 0.0, "ms_median": med(self._ms),
@@ -253,8 +253,14 @@ class WindowBackend:
             cand_world = np.asarray(cand_world, dtype=np.float64) @ moved[:3, :3].T + moved[:3, 3]
         self.steps[k] = (int(result.ref_index), np.array(result.T_ref_cam, dtype=np.float64),
                          result.branch == Branch.TWO_VIEW)
+        score = None
+        if self.cfg.track_texture_px > 0 and cand_cur.shape[0]:
+            if view.image is None:
+                self.stats["unscored_births"] += 1
+            else:
+                score = texture_score(view.image, cand_cur, self.cfg.track_texture_px)
         self.tracks.advance(int(result.ref_index), k, np.asarray(view.flow), np.asarray(view.flow_bw), F,
-                            cand_ref, cand_cur, cand_world)
+                            cand_ref, cand_cur, cand_world, cand_score=score)
         self.keyframes.append(k)
         window = self.keyframes[-self.cfg.window:]
         self._trim(window)

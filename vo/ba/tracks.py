@@ -13,7 +13,9 @@ ends when
 * the new pixel is an epipolar outlier of the step (Sampson distance ``>= epi_px``).
 
 Empty cells of a grid over the newer keyframe (``cell_px``) are then filled with
-new tracks, up to ``max_tracks`` alive. A track also ends when the bundle
+new tracks, up to ``max_tracks`` alive: in each cell the candidate with the best
+score (:func:`texture_score`: flow is most accurate where the image is textured), or
+without scores the first candidate drawn. A track also ends when the bundle
 adjustment finds it an outlier (:meth:`TrackTable.end`).
 
 Pixels are ``(u, v)``; flows are ``flow[y, x] = (dx, dy)`` at working resolution.
@@ -62,6 +64,36 @@ def sample_bilinear(field: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.
     return out, inside
 
 
+def texture_score(image: np.ndarray, pts: np.ndarray, block_px: int) -> np.ndarray:
+    """How well the image pins down a small patch at each point: the smaller eigenvalue of the
+    covariance of the image gradients over a ``block_px`` square (Shi-Tomasi's corner measure).
+    Flat areas and straight edges score low: there a patch matcher such as DIS can slide.
+
+    Args:
+        image: ``(h, w)`` grey or ``(h, w, 3)`` BGR image (any numeric type).
+        pts: ``(N, 2)`` pixels ``(u, v)`` (rounded to the nearest pixel, clamped to the image).
+        block_px: side of the block in pixels (>= 1).
+
+    Returns:
+        ``(N,)`` float64 scores (units: squared intensity gradients; only their order matters).
+    """
+    if block_px < 1:
+        raise ValueError(f"block_px must be >= 1, got {block_px}")
+    pts = np.asarray(pts, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        raise ValueError(f"pts must be (N, 2), got {pts.shape}")
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_BGR2GRAY)
+    if img.ndim != 2:
+        raise ValueError(f"image must be (h, w) or (h, w, 3), got {np.asarray(image).shape}")
+    score = cv2.cornerMinEigenVal(np.ascontiguousarray(img, dtype=np.float32), int(block_px), 3)
+    h, w = score.shape
+    xi = np.clip(np.rint(pts[:, 0]), 0, w - 1).astype(np.int64)
+    yi = np.clip(np.rint(pts[:, 1]), 0, h - 1).astype(np.int64)
+    return score[yi, xi].astype(np.float64)
+
+
 @dataclass(frozen=True)
 class TrackUpdate:
     """What one keyframe step did to the tracks (counts)."""
@@ -107,7 +139,8 @@ class TrackTable:
 
     # -- one keyframe step ----------------------------------------------------------------------------
     def advance(self, kf_old: int, kf_new: int, fw: np.ndarray, bw: np.ndarray, F: np.ndarray,
-                cand_old: np.ndarray, cand_new: np.ndarray, cand_world: np.ndarray) -> TrackUpdate:
+                cand_old: np.ndarray, cand_new: np.ndarray, cand_world: np.ndarray,
+                cand_score: np.ndarray | None = None) -> TrackUpdate:
         """Follow the live tracks from keyframe ``kf_old`` into ``kf_new`` and add new ones.
 
         Args:
@@ -118,6 +151,8 @@ class TrackTable:
                 step without translation (no epipolar test).
             cand_old, cand_new: ``(M, 2)`` matches of the step that new tracks may start from.
             cand_world: ``(M, 3)`` their triangulated world points (first landmark estimates).
+            cand_score: ``(M,)`` preference of each candidate (higher is better, e.g. :func:`texture_score`
+                at ``cand_new``); None: the first candidate of a cell is taken.
         """
         if self.newest is not None and kf_old != self.newest:
             raise ValueError(f"tracks are in keyframe {self.newest}, not {kf_old}")
@@ -141,12 +176,12 @@ class TrackTable:
             epi_out = int((inside & fb_ok & ~epi_ok).sum())
             self.ids, self.pts = self.ids[keep], moved[keep]
         self.obs[kf_new] = (self.ids.copy(), self.pts.copy())
-        born = self._spawn(kf_old, kf_new, cand_old, cand_new, cand_world)
+        born = self._spawn(kf_old, kf_new, cand_old, cand_new, cand_world, cand_score)
         self.newest = kf_new
         return TrackUpdate(int(self.ids.size) - born, left, inconsistent, epi_out, born)
 
     def _spawn(self, kf_old: int, kf_new: int, cand_old: np.ndarray, cand_new: np.ndarray,
-               cand_world: np.ndarray) -> int:
+               cand_world: np.ndarray, cand_score: np.ndarray | None = None) -> int:
         """New tracks in the empty grid cells of ``kf_new``; returns how many."""
         room = self.max_tracks - self.ids.size
         cand_new = np.asarray(cand_new, dtype=np.float64).reshape(-1, 2)
@@ -162,8 +197,15 @@ class TrackTable:
         taken = set(((self.pts[:, 1] // c).astype(np.int64) * n_cols + (self.pts[:, 0] // c).astype(np.int64)).tolist())
         free = np.array([cl not in taken for cl in cell.tolist()], dtype=bool)
         idx, cell = idx[free], cell[free]
-        _, first = np.unique(cell, return_index=True)  # one candidate per cell: the first drawn
-        pick = idx[np.sort(first)][:room]
+        if cand_score is None:
+            _, first = np.unique(cell, return_index=True)  # one candidate per cell: the first drawn
+            pick = idx[np.sort(first)][:room]
+        else:  # one per cell: the best-scored (ties: the first drawn); the best cells first when room is short
+            sc = np.asarray(cand_score, dtype=np.float64).reshape(-1)[idx]
+            order = np.lexsort((np.arange(idx.size), -sc, cell))
+            _, first = np.unique(cell[order], return_index=True)
+            best = order[first]
+            pick = idx[best[np.argsort(-sc[best], kind="stable")]][:room]
         if pick.size == 0:
             return 0
         new_ids = np.arange(self._next_id, self._next_id + pick.size, dtype=np.int64)
