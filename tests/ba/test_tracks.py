@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from trianflow_vo.ba.tracks import TrackTable, sample_bilinear
+from trianflow_vo.ba.tracks import TrackTable, sample_bilinear, texture_score
 from trianflow_vo.geometry.fundamental import fundamental_from_pose
 
 H, W = 64, 96
@@ -114,3 +114,48 @@ def test_landmarks_end_and_forget():
     tt.forget([2])
     seen = set(tt.obs[2][0].tolist())
     assert set(tt.landmarks) == seen
+
+
+def test_texture_score_ranks_a_corner_over_an_edge_over_a_flat_area():
+    img = np.zeros((H, W), np.uint8)
+    img[32:, 48:] = 200  # one bright quadrant: a corner at (48, 32), edges along x = 48 and y = 32
+    pts = np.array([[48.0, 32.0], [48.0, 50.0], [70.0, 32.0], [15.0, 10.0], [80.0, 55.0]])
+    sc = texture_score(img, pts, 9)
+    corner, edge_v, edge_h, flat_dark, flat_bright = sc
+    assert corner > 10 * max(edge_v, edge_h)  # a straight edge pins a patch in one direction only
+    assert flat_dark == 0.0 and flat_bright == 0.0
+    assert edge_v >= 0.0 and edge_h >= 0.0
+    bgr = np.repeat(img[..., None], 3, axis=2)
+    np.testing.assert_allclose(texture_score(bgr, pts, 9), sc)  # a BGR image scores as its grey
+    np.testing.assert_allclose(texture_score(img, pts + 0.3, 9), sc)  # rounded to the pixel
+    assert texture_score(img, np.array([[-5.0, 500.0]]), 9).shape == (1,)  # clamped, not an error
+    with pytest.raises(ValueError):
+        texture_score(img, pts, 0)
+    with pytest.raises(ValueError):
+        texture_score(img, pts[:, 0], 9)
+
+
+def test_spawning_takes_the_best_scored_candidate_of_each_cell():
+    fw, bw = _flows(0.0, 0.0)
+    c = _grid_candidates(4.0)  # many candidates per 32 px cell
+    rng = np.random.default_rng(3)
+    score = rng.random(len(c))
+    tt = TrackTable((H, W), cell_px=32, max_tracks=100)
+    tt.advance(0, 1, fw, bw, None, c, c, np.ones((len(c), 3)), cand_score=score)
+    cell = (c[:, 1] // 32).astype(int) * 3 + (c[:, 0] // 32).astype(int)
+    best = {k: c[np.flatnonzero(cell == k)[np.argmax(score[cell == k])]] for k in range(6)}
+    got = {int(y // 32) * 3 + int(x // 32): (x, y) for x, y in tt.pts}
+    assert sorted(got) == list(range(6))
+    for k in range(6):
+        assert tuple(best[k]) == got[k]
+    # short of room: the best cells' winners first
+    tt = TrackTable((H, W), cell_px=32, max_tracks=2)
+    tt.advance(0, 1, fw, bw, None, c, c, np.ones((len(c), 3)), cand_score=score)
+    winners = sorted((score[cell == k].max(), k) for k in range(6))[::-1]
+    assert {int(y // 32) * 3 + int(x // 32) for x, y in tt.pts} == {winners[0][1], winners[1][1]}
+    # without scores: the first candidate drawn in each cell, as before
+    tt = TrackTable((H, W), cell_px=32, max_tracks=100)
+    tt.advance(0, 1, fw, bw, None, c, c, np.ones((len(c), 3)))
+    first = {k: c[np.flatnonzero(cell == k)[0]] for k in range(6)}
+    got = {int(y // 32) * 3 + int(x // 32): (x, y) for x, y in tt.pts}
+    assert all(tuple(first[k]) == got[k] for k in range(6))
