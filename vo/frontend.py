@@ -406,6 +406,14 @@ class FrontEnd:
                     d_ref, w_ref, w_new, w_scale = self._depths_at(ref, idx2, valid, angle)
                     branch = Branch.PNP
                     how = f"{why}: PnP pose used"
+        if ref is not None and not scale_ok:
+            # the keyframe has depth but too little of it under this step's matches to fix the
+            # step's length: PnP on that depth keeps the keyframe and its scale; constant speed
+            # (below) only when PnP fails too
+            sol = self.small_motion(keyframe, ref, m, R_rot, "scale lost (too few points with depth under the "
+                                    "two-view matches)", tm)
+            if sol.branch == Branch.PNP:
+                return sol
         scale, lost, degraded = step_scale(scale, scale_ok, last_step_norm)
         how = how or lost
         if degraded:

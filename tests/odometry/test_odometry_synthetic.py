@@ -436,3 +436,37 @@ def test_a_low_parallax_two_view_step_is_held_to_the_tighter_pnp_check(monkeypat
     assert loose[2].branch is Branch.TWO_VIEW, loose[2].reason
     assert loose[2].stats.pnp_ratio == pytest.approx(1.3, rel=0.01)
     check_chain(poses, loose, (1.0, 1.0), rot_deg=0.01, dir_deg=0.1, ratio_rel=0.002)
+
+
+# -- a two-view step whose scale the keyframe's depth cannot fix ------------------------------------------------
+def test_a_step_without_scale_is_solved_by_pnp_on_the_keyframe_depth(monkeypatch):
+    """The step's matches find too little of the keyframe's depth to fix its length (the
+    alignment made to fail), while PnP on that depth works: the frame is solved by PnP, the
+    keyframe (and its scale) is kept, and no constant-speed guess enters the chain, which
+    stays exact although the speed changes (1.0 -> 1.7)."""
+    monkeypatch.setattr(frontend, "align_scale", lambda *a, **k: (1.0, False))
+    poses = trajectory([([0.0, YAW, 0.0], DIRECTION), ([0.0, YAW, 0.0], 1.7 * DIRECTION)])
+    res = run_odometry(poses)
+    assert res[1].branch is Branch.TWO_VIEW and res[1].reason.startswith("first two-view step")
+    assert res[2].branch is Branch.PNP, res[2].reason
+    assert res[2].reason == "scale lost (too few points with depth under the two-view matches)"
+    assert not res[2].is_keyframe and res[2].ref_index == 1 and not res[2].stats.degraded
+    s = np.linalg.norm(poses[1][:3, 3]) / np.linalg.norm(res[1].T_world_cam[:3, 3])
+    true = (invert_T(poses[1]) @ poses[2])[:3, 3]
+    est = (invert_T(res[1].T_world_cam) @ res[2].T_world_cam)[:3, 3] * s
+    assert np.linalg.norm(true - est) < 0.01 * np.linalg.norm(true)
+
+
+def test_without_pnp_a_step_without_scale_falls_back_to_constant_speed(monkeypatch):
+    """When PnP on the keyframe's depth fails too, the step keeps its two-view pose at the
+    last step's length, becomes the keyframe, and is marked degraded, as before."""
+    monkeypatch.setattr(frontend, "align_scale", lambda *a, **k: (1.0, False))
+    monkeypatch.setattr(frontend, "solve_pnp", lambda *a, **k: ((None, None, None), False))
+    poses = trajectory([([0.0, YAW, 0.0], DIRECTION), ([0.0, YAW, 0.0], 1.7 * DIRECTION)])
+    res = run_odometry(poses)
+    assert res[2].branch is Branch.TWO_VIEW and res[2].is_keyframe, res[2].reason
+    assert res[2].reason == "scale lost (too few points with depth): constant speed assumed"
+    assert res[2].stats.degraded
+    step1 = np.linalg.norm(res[1].T_world_cam[:3, 3])
+    step2 = np.linalg.norm((invert_T(res[1].T_world_cam) @ res[2].T_world_cam)[:3, 3])
+    assert step2 == pytest.approx(step1, rel=1e-6)  # the last step's length, not the true 1.7x
