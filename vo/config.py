@@ -258,6 +258,10 @@ class KeyframeConfig(_Section):
     max_direction_deg: float = _opt(0.5, "policy gric: largest standard deviation of the translation direction "
                                          "(degrees) for a two-view step; above it PnP on the keyframe's depth",
                                     range=_Range(0.0, lo_open=True))
+    init_min_parallax_px: float = _opt(1.0, "policy gric: median parallax in pixels (rotation removed) a two-view "
+                                            "step needs while the keyframe has no depth (it sets the unit of scale "
+                                            "and the first depth); under it rotation only; 0 = off",
+                                       range=_Range(0.0, 100.0))
     max_flow_fraction: float = _opt(0.1, "policy gric: a PnP / rotation-only frame whose mean flow against the "
                                           "held keyframe exceeds this fraction of the image width becomes the "
                                           "keyframe (its depth moved by the solved pose)",

@@ -156,7 +156,8 @@ class Odometry:
 
         Static camera (median flow under ``keyframes.static_flow_px``): IDENTITY. Then, by
         ``keyframes.policy``: ``gric`` (rotation only preferred by GRIC, or the translation
-        direction's sigma over ``max_direction_deg``) or ``parallax`` (median parallax under
+        direction's sigma over ``max_direction_deg``, or, while the keyframe has no depth, the
+        median parallax under ``init_min_parallax_px``) or ``parallax`` (median parallax under
         ``min_parallax_px``) give PnP/rotation with the keyframe kept (handed on under
         ``gric`` when its flow exceeds ``max_flow_fraction`` of the width, or the next
         frame's is expected past ``max_next_flow_fraction``); else the two-view step, after
@@ -182,6 +183,11 @@ class Odometry:
                    f"noise {test.sigma_px:.2f} px, parallax {parallax:.2f} px)")
         elif dir_sigma > kc.max_direction_deg:
             why = f"translation direction uncertain ({dir_sigma:.2f} deg > {kc.max_direction_deg} deg)"
+        elif ref is None and parallax < kc.init_min_parallax_px:
+            # with no depth to align to, this step's triangulation becomes the first depth and its
+            # length the unit: on too little parallax that depth is mostly noise, and every later
+            # step's scale would be aligned to it
+            why = f"parallax {parallax:.2f} px < {kc.init_min_parallax_px} px for a step without keyframe depth"
         if why:
             sol = self.front.small_motion(kf, ref, m, R_rot, why, tm)
         else:
