@@ -470,3 +470,20 @@ def test_without_pnp_a_step_without_scale_falls_back_to_constant_speed(monkeypat
     step1 = np.linalg.norm(res[1].T_world_cam[:3, 3])
     step2 = np.linalg.norm((invert_T(res[1].T_world_cam) @ res[2].T_world_cam)[:3, 3])
     assert step2 == pytest.approx(step1, rel=1e-6)  # the last step's length, not the true 1.7x
+
+
+# -- the first two-view step needs parallax --------------------------------------------------------------------
+def test_the_first_two_view_step_waits_for_a_pixel_of_parallax():
+    """A first motion of a fifth of the usual step (well under 1 px of parallax, exact flow:
+    GRIC and the direction test would take it) is not allowed to set the first depth: the frame is
+    rotation only against the still depthless keyframe, and the next frame, with the full step
+    on top, makes the first two-view step. With the bound off (0) the small step is taken."""
+    poses = trajectory([([0.0, YAW, 0.0], 0.2 * DIRECTION), ([0.0, YAW, 0.0], DIRECTION)])
+    res = run_odometry(poses)
+    assert res[1].stats.parallax_px < 1.0
+    assert res[1].branch is Branch.ROTATION, res[1].reason
+    assert "px < 1.0 px for a step without keyframe depth; no depth yet: rotation only" in res[1].reason
+    assert res[2].branch is Branch.TWO_VIEW and res[2].ref_index == 0 and res[2].stats.parallax_px >= 1.0
+    assert res[2].reason.startswith("first two-view step")
+    off = run_odometry(poses, config=merge_dict(make_config(0), {"keyframes": {"init_min_parallax_px": 0.0}}, "test"))
+    assert off[1].branch is Branch.TWO_VIEW and off[1].reason.startswith("first two-view step"), off[1].reason
