@@ -197,6 +197,10 @@ class GeometryConfig(_Section):
     min_inliers: int = _opt(100, "fewest reliable matches / inliers to accept a frame pair", range=_Range(8))
     min_angle_rad: float = _opt(1e-3, "triangulated rays meeting at a smaller angle (radians) are dropped",
                                 range=_Range(0.0))
+    min_valid_fraction: float = _opt(0.1, "a two-view step needs this share of its matches triangulated (in front "
+                                           "of both cameras, at min_angle_rad or more); under it the pose is "
+                                           "taken as wrong and the frame is solved by PnP / rotation",
+                                     range=_Range(0.0, 1.0))
     epipolar_correction: bool = _opt(False, "move each match onto its epipolar line before triangulating (the "
                                             "noise across the line is not parallax)")
     min_local_angle_rad: float = _opt(0.0, "drop triangulated points whose image cell sees the scene at a median "

@@ -372,8 +372,10 @@ class FrontEnd:
         stats = {"inliers": n_in, "inlier_ratio": float(rel.inliers.mean())}
         idx2, q1, q2, X, valid, angle = self._triangulate(rel, m, ref, tm)
         t0 = time.perf_counter()
-        if valid.sum() < self.cfg.scale.min_points:
-            return self.small_motion(keyframe, ref, m, R_rot, f"only {int(valid.sum())} points triangulated", tm)
+        if valid.sum() < self.cfg.scale.min_points or valid.mean() < g.min_valid_fraction:
+            # few points in front of both cameras: an ambiguous or wrong pose, not a step to build on
+            return self.small_motion(keyframe, ref, m, R_rot, f"only {int(valid.sum())} of {valid.size} points "
+                                     "triangulated", tm)
         branch, how = Branch.TWO_VIEW, ""
         R, t_unit = rel.R, rel.t
         d_ref, w_ref, w_new, w_scale = self._depths_at(ref, idx2, valid, angle)

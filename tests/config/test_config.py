@@ -26,7 +26,7 @@ DEFAULTS = {
     "depth": {"model": None, "fusion": True, "decay": 0.8, "max_log_gap": 0.3},
     "sampling": {"n_samples": 6000, "top_ratio": 0.2, "max_anchors": 6000, "seed": 0},
     "geometry": {"ransac_method": "ransac", "ransac_threshold_px": 0.25, "ransac_subset": 1000, "refine": True,
-                 "epi_inlier_px": 0.5, "min_inliers": 100, "min_angle_rad": 1e-3, "epipolar_correction": False,
+                 "epi_inlier_px": 0.5, "min_inliers": 100, "min_angle_rad": 1e-3, "min_valid_fraction": 0.1, "epipolar_correction": False,
                  "min_local_angle_rad": 0.0, "local_angle_keep": 0.75, "local_angle_cell_px": 32.0, "pnp_reproj_px": 1.0,
                  "pnp_min_inlier_ratio": 0.1},
     "scale": {"source": "auto", "min_points": 20, "depth_min_flow_px": 5.0, "depth_fit_threshold": 1.0,
