@@ -487,3 +487,27 @@ def test_the_first_two_view_step_waits_for_a_pixel_of_parallax():
     assert res[2].reason.startswith("first two-view step")
     off = run_odometry(poses, config=merge_dict(make_config(0), {"keyframes": {"init_min_parallax_px": 0.0}}, "test"))
     assert off[1].branch is Branch.TWO_VIEW and off[1].reason.startswith("first two-view step"), off[1].reason
+
+
+def test_a_two_view_step_with_few_points_in_front_is_not_taken(monkeypatch):
+    """Triangulation made to leave only every 20th point valid (5% of the matches, still
+    hundreds of points): the pose is not trusted (an ambiguous cheirality puts most points behind
+    a camera), so the first step is not taken: rotation only, no depth yet. With
+    ``geometry.min_valid_fraction`` 0 it is taken on those points."""
+    real = frontend.triangulate_midpoint
+
+    def sparse_front(*args, **kwargs):
+        X, valid, angle = real(*args, **kwargs)
+        keep = np.zeros_like(valid)
+        keep[::20] = True
+        return X, valid & keep, angle
+
+    poses = trajectory([([0.0, YAW, 0.0], DIRECTION)])
+    monkeypatch.setattr(frontend, "triangulate_midpoint", sparse_front)
+    res = run_odometry(poses)
+    assert res[1].branch is Branch.ROTATION, res[1].reason
+    assert "points triangulated; no depth yet: rotation only" in res[1].reason
+    n_valid, n_all = (int(w) for w in res[1].reason.split("only ")[1].split(" points")[0].split(" of "))
+    assert n_valid >= 100 and n_valid < 0.1 * n_all
+    off = run_odometry(poses, config=merge_dict(make_config(0), {"geometry": {"min_valid_fraction": 0.0}}, "test"))
+    assert off[1].branch is Branch.TWO_VIEW and off[1].reason.startswith("first two-view step"), off[1].reason
