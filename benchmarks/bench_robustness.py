@@ -377,6 +377,8 @@ def markdown_section(meta: dict, cases: list[dict], results: dict) -> str:
     out.append(f"- Load average (1/5/15 min) at start {meta['load_start']}, at end {meta['load_end']}; "
                f"{meta['cores']} cores; {meta['threads']} threads per run, {meta['jobs']} run(s) at a time; "
                f"total {meta['elapsed_min']:.1f} min")
+    if meta.get("cpu"):
+        out.append(f"- CPU: {meta['cpu']}")
     floor = max((a.get("launcher_rss_mb") or 0.0) for a in results.values()) if results else 0.0
     out.append(f"- Peak RSS is run.json's `peak_rss_mb` (VmHWM, the run's own; `+N w`: the bundle adjustment's "
                f"worker process, `backend.worker_peak_rss_mb`); the harness itself stays at {floor:.0f} MB")
@@ -450,6 +452,36 @@ def _load() -> str:
     return " ".join(f"{x:.1f}" for x in os.getloadavg())
 
 
+CPU_EXTENSIONS = ("avx512f", "avx2", "fma")
+
+
+def cpu_description(cpuinfo: str | None = None) -> str:
+    """The CPU model and the vector extensions it has of ``CPU_EXTENSIONS``, e.g.
+    ``"AMD EPYC (avx2, fma; no avx512f)"``: numpy and OpenBLAS pick their kernels by them, and
+    the last bits of a sum differ between kernels. ``cpuinfo``: the text of ``/proc/cpuinfo``
+    (read when None; where there is none, ``platform`` names the machine)."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text(errors="replace")
+        except OSError:
+            return " ".join(x for x in (platform.machine(), platform.processor()) if x) or "unknown"
+    model, flags = "", None
+    for line in cpuinfo.splitlines():
+        key, _, value = line.partition(":")
+        key = key.strip()
+        if key == "model name" and not model:
+            model = value.strip()
+        elif key == "flags" and flags is None:
+            flags = set(value.split())
+    model = model or platform.machine() or "unknown"
+    if flags is None:
+        return model
+    has = [f for f in CPU_EXTENSIONS if f in flags]
+    lacks = [f for f in CPU_EXTENSIONS if f not in flags]
+    return f"{model} ({', '.join(has) or 'none of ' + ', '.join(CPU_EXTENSIONS)}" + (
+        f"; no {', '.join(lacks)})" if has and lacks else ")")
+
+
 # --------------------------------------------------------------------------- compare
 
 
@@ -478,6 +510,12 @@ def compare(label_a: str, label_b: str, tolerance: float, min_diff: float) -> tu
              f"`{B['meta'].get('args', '')}`); worse = error ratio > {tolerance:g} and by more than "
              f"{min_diff:g} (points of ATE % or degrees), the same for the worst seed, a frame outside "
              "the expected branches where A had none, or fewer completed runs.", ""]
+    ca, cb = A["meta"].get("cpu"), B["meta"].get("cpu")
+    if (ca or cb) and ca != cb:
+        lines[-1:-1] = [f"- **A and B were measured on different CPUs** (A: {ca or 'not recorded'}; B: "
+                        f"{cb or 'not recorded'}). The same code gives other numbers on another CPU (the "
+                        "floating-point kernels differ and the chaotic clips amplify it): what differs here "
+                        "is not the code's doing alone."]
     lines.append("| case | metric | A | B | B/A | worst seed A | worst seed B | fps A | fps B | fps B/A | allowed A | "
                  "allowed B | verdict |")
     lines.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
@@ -588,6 +626,7 @@ def main(argv=None) -> int:
             "args": args.args, "seeds": args.seeds, "strides": args.strides, "only": args.only,
             "jobs": args.jobs, "threads": THREADS, "cores": os.cpu_count(), "load_start": _load(),
             "machine": " ".join(x for x in (platform.machine(), platform.processor()) if x),
+            "cpu": cpu_description(),
             "command": "python benchmarks/bench_robustness.py "
                        + shlex.join(sys.argv[1:] if argv is None else list(argv))}
     cases = build_cases(args, log)

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
+import sys
 from pathlib import Path
 
 import pytest
@@ -23,6 +25,26 @@ def shared_data() -> Path:
     if not d.is_dir():
         pytest.skip(f"shared data not found at {d} (set TRIANFLOW_SHARED_DATA or put ../shared beside the repo)")
     return d
+
+
+@pytest.fixture(scope="module")
+def benchmark_module():
+    """``load(name)``: ``benchmarks/NAME.py`` as a module (the benchmark scripts are not a
+    package), registered in ``sys.modules`` (a dataclass looks its module up there) until the
+    test module ends."""
+    loaded = []
+
+    def load(name: str):
+        spec = importlib.util.spec_from_file_location(name, REPO / "benchmarks" / f"{name}.py")
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[name] = mod
+        loaded.append(name)
+        spec.loader.exec_module(mod)
+        return mod
+
+    yield load
+    for name in loaded:
+        sys.modules.pop(name, None)
 
 
 @pytest.fixture

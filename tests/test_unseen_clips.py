@@ -2,22 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-
 
 @pytest.fixture(scope="module")
-def uc():
-    spec = importlib.util.spec_from_file_location("unseen_clips", REPO / "benchmarks" / "unseen_clips.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+def uc(benchmark_module):
+    return benchmark_module("unseen_clips")
 
 
 def test_rotations_of_known_quaternions(uc):

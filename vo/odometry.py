@@ -157,7 +157,8 @@ class Odometry:
         Static camera (median flow under ``keyframes.static_flow_px``): IDENTITY. Then, by
         ``keyframes.policy``: ``gric`` (rotation only preferred by GRIC, or the translation
         direction's sigma over ``max_direction_deg``, or, while the keyframe has no depth, the
-        median parallax under ``init_min_parallax_px``) or ``parallax`` (median parallax under
+        median parallax under ``init_min_parallax_px``; while it has depth, under
+        ``depth_min_parallax_px``) or ``parallax`` (median parallax under
         ``min_parallax_px``) give PnP/rotation with the keyframe kept (handed on under
         ``gric`` when its flow exceeds ``max_flow_fraction`` of the width, or the next
         frame's is expected past ``max_next_flow_fraction``); else the two-view step, after
@@ -188,6 +189,10 @@ class Odometry:
             # length the unit: on too little parallax that depth is mostly noise, and every later
             # step's scale would be aligned to it
             why = f"parallax {parallax:.2f} px < {kc.init_min_parallax_px} px for a step without keyframe depth"
+        elif ref is not None and parallax < kc.depth_min_parallax_px:
+            # on a short baseline a small error of the rotation tilts the triangulated depth across
+            # the image; fused into the keyframe's depth, the tilt becomes the scale of later steps
+            why = f"parallax {parallax:.2f} px < {kc.depth_min_parallax_px} px for a step on keyframe depth"
         if why:
             sol = self.front.small_motion(kf, ref, m, R_rot, why, tm)
         else:

@@ -489,6 +489,29 @@ def test_the_first_two_view_step_waits_for_a_pixel_of_parallax():
     assert off[1].branch is Branch.TWO_VIEW and off[1].reason.startswith("first two-view step"), off[1].reason
 
 
+def test_a_two_view_step_on_keyframe_depth_needs_the_depth_parallax_floor():
+    """A short step after two full ones (exact flow: GRIC and the direction test take it as two-view
+    by default). With ``keyframes.depth_min_parallax_px`` between its parallax and the full steps'
+    it is solved by PnP on the keyframe's depth instead, the keyframe kept, and the pose is still
+    right; the full steps before it are not touched."""
+    poses = trajectory([([0.0, YAW, 0.0], DIRECTION), ([0.0, YAW, 0.0], DIRECTION),
+                        ([0.0, YAW, 0.0], 0.3 * DIRECTION)])
+    base = run_odometry(poses)
+    assert [r.branch for r in base] == [Branch.INIT, Branch.TWO_VIEW, Branch.TWO_VIEW, Branch.TWO_VIEW]
+    short, full = base[3].stats.parallax_px, min(base[1].stats.parallax_px, base[2].stats.parallax_px)
+    assert short < 0.5 * full
+    floor = 0.5 * (short + full)
+    res = run_odometry(poses, config=merge_dict(make_config(0), {"keyframes": {"depth_min_parallax_px": floor}},
+                                                 "test"))
+    assert [r.branch for r in res[:3]] == [Branch.INIT, Branch.TWO_VIEW, Branch.TWO_VIEW]
+    assert res[3].branch is Branch.PNP and res[3].ref_index == 2, res[3].reason
+    assert f"px < {floor} px for a step on keyframe depth" in res[3].reason
+    T_est = invert_T(res[2].T_world_cam) @ res[3].T_world_cam
+    T_true = invert_T(poses[2]) @ poses[3]
+    assert rot_err_deg(T_est[:3, :3], T_true[:3, :3]) < 0.01
+    assert np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]) < 0.02 * np.linalg.norm(T_true[:3, 3])
+
+
 def test_a_two_view_step_with_few_points_in_front_is_not_taken(monkeypatch):
     """Triangulation made to leave only every 20th point valid (5% of the matches, still
     hundreds of points): the pose is not trusted (an ambiguous cheirality puts most points behind
