@@ -452,6 +452,10 @@ def _load() -> str:
     return " ".join(f"{x:.1f}" for x in os.getloadavg())
 
 
+def _machine() -> str:
+    return " ".join(x for x in (platform.machine(), platform.processor()) if x)
+
+
 CPU_EXTENSIONS = ("avx512f", "avx2", "fma")
 
 
@@ -464,7 +468,7 @@ def cpu_description(cpuinfo: str | None = None) -> str:
         try:
             cpuinfo = Path("/proc/cpuinfo").read_text(errors="replace")
         except OSError:
-            return " ".join(x for x in (platform.machine(), platform.processor()) if x) or "unknown"
+            return _machine() or "unknown"
     model, flags = "", None
     for line in cpuinfo.splitlines():
         key, _, value = line.partition(":")
@@ -625,7 +629,7 @@ def main(argv=None) -> int:
     meta = {"label": label, "date": f"{datetime.datetime.now():%Y-%m-%d %H:%M}", "git": _git_state(),
             "args": args.args, "seeds": args.seeds, "strides": args.strides, "only": args.only,
             "jobs": args.jobs, "threads": THREADS, "cores": os.cpu_count(), "load_start": _load(),
-            "machine": " ".join(x for x in (platform.machine(), platform.processor()) if x),
+            "machine": _machine(),
             "cpu": cpu_description(),
             "command": "python benchmarks/bench_robustness.py "
                        + shlex.join(sys.argv[1:] if argv is None else list(argv))}
