@@ -65,6 +65,8 @@ class Odometry:
         # the last frame when it was solved against the held keyframe and kept it: (index, image, prepared,
         # Solution), the way round a keyframe whose flow is lost
         self._held_last: tuple[int, np.ndarray, object, Solution] | None = None
+        # PnP inlier ratio of the first frame kept on the current keyframe (keyframes.min_inlier_share)
+        self._kf_ratio0: float | None = None
 
     def describe(self) -> dict:
         return {"odometry": "trianflow", "scale_source": self.scale_source, "flow_source": self.flow.describe(),
@@ -157,12 +159,13 @@ class Odometry:
         Static camera (median flow under ``keyframes.static_flow_px``): IDENTITY. Then, by
         ``keyframes.policy``: ``gric`` (rotation only preferred by GRIC, or the translation
         direction's sigma over ``max_direction_deg``, or, while the keyframe has no depth, the
-        median parallax under ``init_min_parallax_px``; while it has depth, under
-        ``depth_min_parallax_px``) or ``parallax`` (median parallax under
+        median parallax under ``init_min_parallax_px``; while it has depth, its angle under
+        ``depth_min_parallax_deg``) or ``parallax`` (median parallax under
         ``min_parallax_px``) give PnP/rotation with the keyframe kept (handed on under
         ``gric`` when its flow exceeds ``max_flow_fraction`` of the width, or the next
-        frame's is expected past ``max_next_flow_fraction``); else the two-view step, after
-        which the frame is the new keyframe."""
+        frame's is expected past ``max_next_flow_fraction``, or a PnP's inlier ratio falls
+        under ``min_inlier_share`` of the first one's on this keyframe); else the two-view
+        step, after which the frame is the new keyframe."""
         kc = self.cfg.keyframes
         median_flow = float(np.median(m.flow_mag))
         if median_flow < kc.static_flow_px:
@@ -189,10 +192,12 @@ class Odometry:
             # length the unit: on too little parallax that depth is mostly noise, and every later
             # step's scale would be aligned to it
             why = f"parallax {parallax:.2f} px < {kc.init_min_parallax_px} px for a step without keyframe depth"
-        elif ref is not None and parallax < kc.depth_min_parallax_px:
+        elif ref is not None and self._parallax_deg(parallax) < kc.depth_min_parallax_deg:
             # on a short baseline a small error of the rotation tilts the triangulated depth across
-            # the image; fused into the keyframe's depth, the tilt becomes the scale of later steps
-            why = f"parallax {parallax:.2f} px < {kc.depth_min_parallax_px} px for a step on keyframe depth"
+            # the image; fused into the keyframe's depth, the tilt becomes the scale of later steps.
+            # An angle, not pixels: the same floor holds at any image size and focal length
+            why = (f"parallax {parallax:.2f} px = {self._parallax_deg(parallax):.3f} deg < "
+                   f"{kc.depth_min_parallax_deg} deg for a step on keyframe depth")
         if why:
             sol = self.front.small_motion(kf, ref, m, R_rot, why, tm)
         else:
@@ -207,12 +212,25 @@ class Odometry:
         held = max(1, self.line - self._kf_line)
         next_flow = mean_flow * (held + 1) / held
         if sol.tracks is None and sol.branch in (Branch.PNP, Branch.ROTATION):
+            ratio = sol.stats.get("inlier_ratio") if sol.branch == Branch.PNP else None
             if mean_flow > kc.max_flow_fraction * width:
                 sol = self.front.transfer_keyframe(kf, sol, f"; keyframe handed on at mean flow {mean_flow:.1f} px")
             elif next_flow > kc.max_next_flow_fraction * width:
                 sol = self.front.transfer_keyframe(kf, sol, f"; keyframe handed on at mean flow {mean_flow:.1f} px, "
                                                             f"{next_flow:.1f} px expected at the next frame")
+            elif (kc.min_inlier_share > 0 and ratio is not None and self._kf_ratio0 is not None
+                  and ratio < kc.min_inlier_share * self._kf_ratio0):
+                # the keyframe's points are leaving the view (an orbit, an occluder): its depth still
+                # fits the frames that see them, but PnP on a shrinking, one-sided set drifts in rotation
+                sol = self.front.transfer_keyframe(
+                    kf, sol, f"; keyframe handed on at a PnP inlier share of {ratio:.2f} < "
+                             f"{kc.min_inlier_share} x {self._kf_ratio0:.2f} (the first frame on it)")
         return sol, ref
+
+    def _parallax_deg(self, parallax_px: float) -> float:
+        """A parallax in pixels as an angle in degrees (over the mean focal length)."""
+        K = self.camera.K
+        return float(np.degrees(parallax_px / (0.5 * (K[0, 0] + K[1, 1]))))
 
     def _solve_pairwise(self, kf: Keyframe, m: Matches, cur: Keyframe, stats: dict, tm: StageTimer):
         """The authors' policy (``scale.source`` depth): every pair scaled by the network depth of
@@ -258,7 +276,10 @@ class Odometry:
         self._new_keyframe_last = is_keyframe
         kept_keyframe = not is_keyframe and sol.branch in (Branch.PNP, Branch.ROTATION) and not self._flow_lost(sol)
         self._held_last = (frame_index, image, prepared, sol) if kept_keyframe else None
+        if kept_keyframe and sol.branch == Branch.PNP and self._kf_ratio0 is None:
+            self._kf_ratio0 = sol.stats.get("inlier_ratio")
         if is_keyframe:
+            self._kf_ratio0 = None
             if sol.step_norm is not None:  # a handed-on keyframe (PnP / rotation) keeps the last step length
                 self.last_step_norm = sol.step_norm
             self.keyframe = Keyframe(frame_index, image, prepared, sol.T_world_cam, sol.tracks)

@@ -491,25 +491,83 @@ def test_the_first_two_view_step_waits_for_a_pixel_of_parallax():
 
 def test_a_two_view_step_on_keyframe_depth_needs_the_depth_parallax_floor():
     """A short step after two full ones (exact flow: GRIC and the direction test take it as two-view
-    by default). With ``keyframes.depth_min_parallax_px`` between its parallax and the full steps'
-    it is solved by PnP on the keyframe's depth instead, the keyframe kept, and the pose is still
-    right; the full steps before it are not touched."""
+    by default). With ``keyframes.depth_min_parallax_deg`` between its parallax angle and the full
+    steps' it is solved by PnP on the keyframe's depth instead, the keyframe kept, and the pose is
+    still right; the full steps before it are not touched."""
     poses = trajectory([([0.0, YAW, 0.0], DIRECTION), ([0.0, YAW, 0.0], DIRECTION),
                         ([0.0, YAW, 0.0], 0.3 * DIRECTION)])
     base = run_odometry(poses)
     assert [r.branch for r in base] == [Branch.INIT, Branch.TWO_VIEW, Branch.TWO_VIEW, Branch.TWO_VIEW]
     short, full = base[3].stats.parallax_px, min(base[1].stats.parallax_px, base[2].stats.parallax_px)
     assert short < 0.5 * full
-    floor = 0.5 * (short + full)
-    res = run_odometry(poses, config=merge_dict(make_config(0), {"keyframes": {"depth_min_parallax_px": floor}},
+    floor = round(float(np.degrees(0.5 * (short + full) / K[0, 0])), 4)  # px over the focal length
+    res = run_odometry(poses, config=merge_dict(make_config(0), {"keyframes": {"depth_min_parallax_deg": floor}},
                                                  "test"))
     assert [r.branch for r in res[:3]] == [Branch.INIT, Branch.TWO_VIEW, Branch.TWO_VIEW]
     assert res[3].branch is Branch.PNP and res[3].ref_index == 2, res[3].reason
-    assert f"px < {floor} px for a step on keyframe depth" in res[3].reason
+    short_deg = np.degrees(short / K[0, 0])
+    assert f"parallax {short:.2f} px = {short_deg:.3f} deg < {floor} deg for a step on keyframe depth" in res[3].reason
     T_est = invert_T(res[2].T_world_cam) @ res[3].T_world_cam
     T_true = invert_T(poses[2]) @ poses[3]
     assert rot_err_deg(T_est[:3, :3], T_true[:3, :3]) < 0.01
     assert np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]) < 0.02 * np.linalg.norm(T_true[:3, 3])
+
+
+class AgingFlow(BoxFlow):
+    """Exact flow, except that from frame ``a`` to frame ``b`` the left ``0.25 (|b - a| - 1)`` of
+    image ``a`` lands 8 px further right (both ways, so it passes the consistency check): the
+    further a frame is from its keyframe, the larger the share of the keyframe's points whose
+    matches are wrong, as when they leave the view or an occluder moves in."""
+
+    SHIFT_PX = 8.0
+
+    def flow_pair(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+        fw, bw = super().flow_pair(a, b)
+        edge = 0.25 * (abs(b - a) - 1) * W
+        if edge <= 0:
+            return fw, bw
+        gx = np.arange(W, dtype=np.float32)[None, :]
+        fw[..., 0] = np.where(gx < edge, fw[..., 0] + self.SHIFT_PX, fw[..., 0])
+        # a pixel y of b now comes from where y - SHIFT_PX came from, when that lies in the region
+        s = int(self.SHIFT_PX)
+        bw_from = np.concatenate([bw[:, :1].repeat(s, 1), bw[:, :-s]], 1)
+        src = gx - self.SHIFT_PX + bw_from[..., 0]
+        moved = src < edge
+        bw[..., 0] = np.where(moved, bw_from[..., 0] - self.SHIFT_PX, bw[..., 0])
+        bw[..., 1] = np.where(moved, bw_from[..., 1], bw[..., 1])
+        return fw, bw
+
+
+def test_a_keyframe_whose_pnp_inlier_share_falls_is_handed_on():
+    """Two full steps, then short ones solved by PnP on keyframe 2 (the direction test and the depth
+    parallax floor send them there), while :class:`AgingFlow` makes a growing share of the keyframe's matches wrong
+    (a quarter more each frame). Held, the keyframe's PnP follows the wrong majority at frame 6
+    (three quarters wrong): its rotation is off by degrees. With ``keyframes.min_inlier_share`` 0.6
+    the keyframe is handed on once the inlier ratio falls under 0.6 x the first PnP frame's (at
+    frame 5, half wrong), and every pose stays right."""
+    poses = trajectory([([0.0, YAW, 0.0], DIRECTION), ([0.0, YAW, 0.0], DIRECTION)]
+                       + [([0.0, YAW, 0.0], 0.15 * DIRECTION)] * 4)
+    floor = {"depth_min_parallax_deg": 0.42}  # the full steps have 0.46 deg, the short ones up to 0.39
+
+    def run(share: float) -> list[FrameResult]:
+        cfg = merge_dict(make_config(0), {"keyframes": {**floor, "min_inlier_share": share}}, "test")
+        return run_odometry(poses, flow=AgingFlow(poses), config=cfg)
+
+    def step_rot_err(res: list[FrameResult], k: int) -> float:
+        T_est = invert_T(res[k - 1].T_world_cam) @ res[k].T_world_cam
+        return rot_err_deg(T_est[:3, :3], (invert_T(poses[k - 1]) @ poses[k])[:3, :3])
+
+    held = run(0.0)
+    assert [r.branch for r in held] == [Branch.INIT, Branch.TWO_VIEW, Branch.TWO_VIEW] + [Branch.PNP] * 4
+    assert [r.ref_index for r in held[3:]] == [2] * 4, [r.reason for r in held]
+    assert step_rot_err(held, 6) > 0.5
+
+    res = run(0.6)
+    assert [r.branch for r in res] == [Branch.INIT, Branch.TWO_VIEW, Branch.TWO_VIEW] + [Branch.PNP] * 4
+    assert [r.ref_index for r in res[3:]] == [2, 2, 2, 5], [r.reason for r in res]
+    assert "keyframe handed on at a PnP inlier share of" in res[5].reason, res[5].reason
+    assert "(the first frame on it)" in res[5].reason
+    assert all(step_rot_err(res, k) < 0.01 for k in range(1, 7)), [step_rot_err(res, k) for k in range(1, 7)]
 
 
 def test_a_two_view_step_with_few_points_in_front_is_not_taken(monkeypatch):
