@@ -491,12 +491,13 @@ def test_the_first_two_view_step_waits_for_a_pixel_of_parallax():
 
 def test_a_two_view_step_on_keyframe_depth_needs_the_depth_parallax_floor():
     """A short step after two full ones (exact flow: GRIC and the direction test take it as two-view
-    by default). With ``keyframes.depth_min_parallax_deg`` between its parallax angle and the full
+    with the floor off). With ``keyframes.depth_min_parallax_deg`` between its parallax angle and the full
     steps' it is solved by PnP on the keyframe's depth instead, the keyframe kept, and the pose is
     still right; the full steps before it are not touched."""
     poses = trajectory([([0.0, YAW, 0.0], DIRECTION), ([0.0, YAW, 0.0], DIRECTION),
                         ([0.0, YAW, 0.0], 0.3 * DIRECTION)])
-    base = run_odometry(poses)
+    base = run_odometry(poses, config=merge_dict(make_config(0), {"keyframes": {"depth_min_parallax_deg": 0.0}},
+                                                 "test"))
     assert [r.branch for r in base] == [Branch.INIT, Branch.TWO_VIEW, Branch.TWO_VIEW, Branch.TWO_VIEW]
     short, full = base[3].stats.parallax_px, min(base[1].stats.parallax_px, base[2].stats.parallax_px)
     assert short < 0.5 * full
