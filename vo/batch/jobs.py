@@ -263,15 +263,19 @@ def _done(result: dict, t0: float) -> dict:
     return result
 
 
-def mark_stopped(out_dir: str | Path, reason: str) -> bool:
-    """Best effort, for a run killed from outside (timeout, crash): when its ``run.json`` still says
-    ``running`` or ``interrupted``, set ``status: failed`` and ``error: reason``. Returns whether it
+def mark_stopped(out_dir: str | Path, reason: str, status: str = "failed") -> bool:
+    """Best effort, for a run killed from outside: when its ``run.json`` still says ``running`` or
+    ``interrupted``, set ``status`` and ``error: reason``. ``status`` is ``failed`` (a timeout, a
+    crash) or ``interrupted`` (the batch was stopped, and the run was killed before it could close
+    its folder itself; a folder it closed as ``interrupted`` is left as it is). Returns whether it
     was changed; never raises (the folder may not be visible from here)."""
     path = Path(out_dir) / "run.json"
     doc = read_run_json(Path(out_dir))
     if doc is None or doc.get("status") not in ("running", "interrupted"):
         return False
-    doc.update({"status": "failed", "error": reason, "signal": None})
+    if status == "interrupted" and doc.get("status") == "interrupted":
+        return False
+    doc.update({"status": status, "error": reason, "signal": None})
     try:
         from trianflow_vo.io.atomic import write_atomic
 

@@ -331,6 +331,7 @@ def run_batch(
         except KeyboardInterrupt as exc:
             _stop_all(ray, inflight, grace_s)
             for st in inflight.values():
+                _close_killed(out_root / jobs[st[0]].out, grace_s)
                 results[st[0]] = _failed_row(jobs[st[0]], out_root, "batch interrupted", "interrupted")
             for i in queue:
                 results[i] = _failed_row(jobs[i], out_root, "not started (batch interrupted)", "pending")
@@ -405,6 +406,17 @@ def _collect(ray, ref, job: Job, out_root: Path, timed_out: bool, timeout: float
         mark_stopped(out_root / job.out, reason)
         row.update({"status": "failed", "reason": reason})
     return row
+
+
+def _close_killed(out_dir: Path, wait_s: float) -> None:
+    """After the batch was stopped: a run that did not close its folder within the grace time was
+    killed with its worker (on a loaded machine 5 s can be too short), so its lock is removed and its
+    ``run.json``, still ``running``, is set ``interrupted`` here."""
+    from trianflow_vo.io.run_dir import clear_stale_lock
+
+    _wait_unlocked(out_dir, wait_s)
+    clear_stale_lock(out_dir)
+    mark_stopped(out_dir, "batch interrupted: the run was killed before it closed its folder", "interrupted")
 
 
 def _wait_unlocked(out_dir: Path, wait_s: float) -> None:
