@@ -27,11 +27,13 @@ def test_sigterm_stops_jobs_writes_summary_exit_143(shared_data, tmp_path):
            "--workers", "1", "--set", "runtime.threads=1", "--no-plot", "-q"]
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          env={**os.environ, "RAY_USAGE_STATS_ENABLED": "0"})
-    run_json, poses = out / long_seq.name / "run.json", out / long_seq.name / "poses.txt"
+    run_json, log = out / long_seq.name / "run.json", out / long_seq.name / "frames.tsv"
     try:
         deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and p.poll() is None:  # until the run has written a frame
-            if poses.is_file() and poses.stat().st_size > 0:
+        # until the run has written a whole frame: frames.tsv (header + one row) is the last file a frame
+        # writes; a signal while a frame is being written takes that frame back
+        while time.monotonic() < deadline and p.poll() is None:
+            if log.is_file() and log.read_text().count("\n") >= 2:
                 break
             time.sleep(0.1)
         assert p.poll() is None, p.communicate()

@@ -137,7 +137,9 @@ def test_signals_close_the_run_as_interrupted(sample_seq, tmp_path, sig, code):
     out = tmp_path / "out"
     p = cli("run", sample_seq, *SMALL, "--no-plot", "--out", out, cwd=tmp_path)
     deadline = time.monotonic() + 60
-    while not ((out / "frames.txt").exists() and len((out / "frames.txt").read_text().split()) >= 2):
+    # two frames complete: frames.tsv is the last of the four files a frame writes (header + 2 rows). Waiting
+    # on frames.txt raced: a signal between its line and frames.tsv's takes the frame back (n = 1), as it should
+    while not ((out / "frames.tsv").exists() and (out / "frames.tsv").read_text().count("\n") >= 3):
         assert p.poll() is None and time.monotonic() < deadline, p.communicate()
         time.sleep(0.02)
     p.send_signal(sig)
