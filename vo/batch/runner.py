@@ -331,7 +331,10 @@ def run_batch(
         except KeyboardInterrupt as exc:
             _stop_all(ray, inflight, grace_s)
             for st in inflight.values():
-                _close_killed(out_root / jobs[st[0]].out, grace_s)
+                # a run that had not closed its folder within the grace time was killed with its worker
+                # (on a loaded machine 5 s can be too short): its folder is closed here
+                _close_stopped(out_root / jobs[st[0]].out, grace_s,
+                               "batch interrupted: the run was killed before it closed its folder", "interrupted")
                 results[st[0]] = _failed_row(jobs[st[0]], out_root, "batch interrupted", "interrupted")
             for i in queue:
                 results[i] = _failed_row(jobs[i], out_root, "not started (batch interrupted)", "pending")
@@ -395,11 +398,7 @@ def _collect(ray, ref, job: Job, out_root: Path, timed_out: bool, timeout: float
         row = ray.get(ref)
     except rex.RayError as exc:
         reason = f"timeout: stopped after {timeout:g} s" if timed_out else ray_failure(exc)
-        from trianflow_vo.io.run_dir import clear_stale_lock
-
-        _wait_unlocked(out_root / job.out, grace_s)  # a cancelled run may still be closing its folder
-        clear_stale_lock(out_root / job.out)  # a killed run could not remove its lock
-        mark_stopped(out_root / job.out, reason)
+        _close_stopped(out_root / job.out, grace_s, reason)
         return _failed_row(job, out_root, reason)
     if timed_out and row.get("status") != "completed":  # the job saw the cancel and returned
         reason = f"timeout: stopped after {timeout:g} s"
@@ -408,15 +407,15 @@ def _collect(ray, ref, job: Job, out_root: Path, timed_out: bool, timeout: float
     return row
 
 
-def _close_killed(out_dir: Path, wait_s: float) -> None:
-    """After the batch was stopped: a run that did not close its folder within the grace time was
-    killed with its worker (on a loaded machine 5 s can be too short), so its lock is removed and its
-    ``run.json``, still ``running``, is set ``interrupted`` here."""
+def _close_stopped(out_dir: Path, wait_s: float, reason: str, status: str = "failed") -> None:
+    """Close the folder of a run stopped from outside: wait (at most ``wait_s``) while the run may
+    still be closing it, remove the lock a killed run could not, and set its ``run.json`` (when still
+    ``running`` / ``interrupted``) to ``status`` with ``reason`` (:func:`mark_stopped`)."""
     from trianflow_vo.io.run_dir import clear_stale_lock
 
     _wait_unlocked(out_dir, wait_s)
     clear_stale_lock(out_dir)
-    mark_stopped(out_dir, "batch interrupted: the run was killed before it closed its folder", "interrupted")
+    mark_stopped(out_dir, reason, status)
 
 
 def _wait_unlocked(out_dir: Path, wait_s: float) -> None:
