@@ -266,12 +266,12 @@ class KeyframeConfig(_Section):
                                             "step needs while the keyframe has no depth (it sets the unit of scale "
                                             "and the first depth); under it rotation only; 0 = off",
                                        range=_Range(0.0, 100.0))
-    depth_min_parallax_deg: float = _opt(0.0, "policy gric: median parallax (rotation removed) as an angle in degrees "
+    depth_min_parallax_deg: float = _opt(0.2, "policy gric: median parallax (rotation removed) as an angle in degrees "
                                               "(pixels over the mean focal length) a two-view step needs while the "
                                               "keyframe has depth; under it PnP on that depth (a short baseline's "
                                               "rotation error tilts the new depth); 0 = off",
                                          range=_Range(0.0, 10.0))
-    min_inlier_share: float = _opt(0.0, "policy gric: a PnP frame whose inlier ratio falls under this share of the "
+    min_inlier_share: float = _opt(0.5, "policy gric: a PnP frame whose inlier ratio falls under this share of the "
                                         "first PnP frame's on the same held keyframe becomes the keyframe (its "
                                         "depth moved by the solved pose): the keyframe's points are fading; "
                                         "0 = off", range=_Range(0.0, 1.0))
