@@ -179,6 +179,7 @@ class Odometry:
                 return self.front.small_motion(kf, ref, m, R_rot, why, tm), ref
             return self.front.two_view(kf, ref, m, R_rot, self.last_step_norm, tm, parallax_px=parallax), ref
         rel, n_in, test, dir_sigma = self.front.motion_test(m, par, tm)
+        parallax_deg = self._parallax_deg(parallax)
         why = ""
         if rel is None:
             why = f"two-view geometry degenerate ({n_in} inliers)"
@@ -192,11 +193,11 @@ class Odometry:
             # length the unit: on too little parallax that depth is mostly noise, and every later
             # step's scale would be aligned to it
             why = f"parallax {parallax:.2f} px < {kc.init_min_parallax_px} px for a step without keyframe depth"
-        elif ref is not None and self._parallax_deg(parallax) < kc.depth_min_parallax_deg:
+        elif ref is not None and parallax_deg < kc.depth_min_parallax_deg:
             # on a short baseline a small error of the rotation tilts the triangulated depth across
             # the image; fused into the keyframe's depth, the tilt becomes the scale of later steps.
             # An angle, not pixels: the same floor holds at any image size and focal length
-            why = (f"parallax {parallax:.2f} px = {self._parallax_deg(parallax):.3f} deg < "
+            why = (f"parallax {parallax:.2f} px = {parallax_deg:.3f} deg < "
                    f"{kc.depth_min_parallax_deg} deg for a step on keyframe depth")
         if why:
             sol = self.front.small_motion(kf, ref, m, R_rot, why, tm)
