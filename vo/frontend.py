@@ -287,10 +287,11 @@ class FrontEnd:
             tm.add("pnp", t0)
         return sol
 
-    def transfer_keyframe(self, keyframe: Keyframe, sol: Solution, note: str) -> Solution:
+    def transfer_keyframe(self, keyframe: Keyframe, sol: Solution, note: str, extra: Tracks | None = None) -> Solution:
         """Make the frame of a PnP / rotation-only solution the new keyframe: the keyframe's
         tracks are moved into it by the solved pose (``T_cur_ref``), keeping their ids and
-        weights; those that leave the image or fall behind the camera are dropped."""
+        weights; those that leave the image or fall behind the camera are dropped. ``extra``:
+        tracks already in the current frame (:meth:`handon_points`) that join them."""
         T_cur_ref = invert_T(sol.T_ref_cam)
         tr = keyframe.tracks
         if len(tr):
@@ -299,7 +300,38 @@ class FrontEnd:
             tracks = Tracks(tr.ids[keep], uv[keep], X[keep, 2], tr.weight[keep])
         else:
             tracks = Tracks.empty()
+        if extra is not None and len(extra):
+            tracks = Tracks(np.concatenate([tracks.ids, extra.ids]), np.concatenate([tracks.pts, extra.pts]),
+                            np.concatenate([tracks.depth, extra.depth]), np.concatenate([tracks.weight, extra.weight]))
         return replace(sol, reason=sol.reason + note, tracks=tracks, step_norm=None)
+
+    def handon_points(self, ref: ReferenceDepth | None, m: Matches, sol: Solution, min_angle_rad: float) -> Tracks:
+        """New depth for a keyframe handed on after PnP: the drawn matches ``m`` whose keyframe
+        pixel carries no depth in ``ref``, triangulated under the solved (scaled) pose of ``sol``,
+        as tracks of the current frame (new ids, weight = ray angle squared).
+
+        A match is kept when its Sampson distance under that pose is at most
+        ``geometry.epi_inlier_px`` (the pose explains it), its rays meet at ``min_angle_rad``
+        or more, and the point lies in front of both cameras."""
+        T_cur_ref = invert_T(sol.T_ref_cam)
+        R, t = T_cur_ref[:3, :3], T_cur_ref[:3, 3]
+        base = float(np.linalg.norm(t))
+        if base <= 0 or m.idx.size == 0:
+            return Tracks.empty()
+        free = np.ones(m.idx.size, dtype=bool) if ref is None else ref.depth.ravel()[m.idx] <= 0
+        q1, q2 = m.pts_ref[free], m.pts_cur[free]
+        t_unit = t / base
+        near = sampson_distance(fundamental_from_pose(R, t_unit, self.K), q1, q2) <= self.cfg.geometry.epi_inlier_px
+        X, valid, angle = triangulate_midpoint(q1[near], q2[near], self.K, R, t_unit, min_angle=min_angle_rad)
+        if not valid.any():
+            return Tracks.empty()
+        X_cur = (X[valid] @ R.T + t_unit) * base
+        uv = project(X_cur, self.K)
+        h, w = self.camera.size_hw
+        xi, yi = np.rint(uv[:, 0]), np.rint(uv[:, 1])
+        keep = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h) & (X_cur[:, 2] > 0)
+        n = int(keep.sum())
+        return Tracks(self.track_ids.new(n), uv[keep], X_cur[keep, 2], angle[valid][keep] ** 2)
 
     def _relative_pose(self, m: Matches, tm: StageTimer):
         """``(RelativePose, n_inliers)`` of the matches, or ``(None, n)`` when degenerate."""

@@ -214,19 +214,35 @@ class Odometry:
         next_flow = mean_flow * (held + 1) / held
         if sol.tracks is None and sol.branch in (Branch.PNP, Branch.ROTATION):
             ratio = sol.stats.get("inlier_ratio") if sol.branch == Branch.PNP else None
+            note = ""
             if mean_flow > kc.max_flow_fraction * width:
-                sol = self.front.transfer_keyframe(kf, sol, f"; keyframe handed on at mean flow {mean_flow:.1f} px")
+                note = f"; keyframe handed on at mean flow {mean_flow:.1f} px"
             elif next_flow > kc.max_next_flow_fraction * width:
-                sol = self.front.transfer_keyframe(kf, sol, f"; keyframe handed on at mean flow {mean_flow:.1f} px, "
-                                                            f"{next_flow:.1f} px expected at the next frame")
+                note = f"; keyframe handed on at mean flow {mean_flow:.1f} px, {next_flow:.1f} px expected at the next frame"
             elif (kc.min_inlier_share > 0 and ratio is not None and self._kf_ratio0 is not None
                   and ratio < kc.min_inlier_share * self._kf_ratio0):
                 # the keyframe's points are leaving the view (an orbit, an occluder): its depth still
                 # fits the frames that see them, but PnP on a shrinking, one-sided set drifts in rotation
-                sol = self.front.transfer_keyframe(
-                    kf, sol, f"; keyframe handed on at a PnP inlier share of {ratio:.2f} < "
-                             f"{kc.min_inlier_share} x {self._kf_ratio0:.2f} (the first frame on it)")
+                note = (f"; keyframe handed on at a PnP inlier share of {ratio:.2f} < "
+                        f"{kc.min_inlier_share} x {self._kf_ratio0:.2f} (the first frame on it)")
+            if note:
+                sol = self._hand_on(kf, ref, m, sol, note, tm)
         return sol, ref
+
+    def _hand_on(self, kf: Keyframe, ref: ReferenceDepth | None, m: Matches, sol: Solution, note: str,
+                 tm: StageTimer) -> Solution:
+        """The PnP / rotation-only frame ``sol`` becomes the keyframe: ``kf``'s depth moved into it
+        and, with ``keyframes.handon_min_angle_deg``, after PnP the matches without depth
+        triangulated under its pose (the view turns towards parts of the scene the held depth
+        does not cover)."""
+        min_deg = self.cfg.keyframes.handon_min_angle_deg
+        extra = None
+        if min_deg > 0 and sol.branch == Branch.PNP:
+            t0 = time.perf_counter()
+            extra = self.front.handon_points(ref, m, sol, np.radians(min_deg))
+            tm.add("triangulate", t0)
+            note += f" with {len(extra)} new points triangulated under its PnP pose"
+        return self.front.transfer_keyframe(kf, sol, note, extra)
 
     def _parallax_deg(self, parallax_px: float) -> float:
         """A parallax in pixels as an angle in degrees (over the mean focal length)."""

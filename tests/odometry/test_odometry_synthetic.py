@@ -593,3 +593,51 @@ def test_a_two_view_step_with_few_points_in_front_is_not_taken(monkeypatch):
     assert n_valid >= 100 and n_valid < 0.1 * n_all
     off = run_odometry(poses, config=merge_dict(make_config(0), {"geometry": {"min_valid_fraction": 0.0}}, "test"))
     assert off[1].branch is Branch.TWO_VIEW and off[1].reason.startswith("first two-view step"), off[1].reason
+
+
+def test_a_keyframe_handed_on_after_pnp_gets_new_depth_triangulated_under_its_pose():
+    """Two full steps, then short ones solved by PnP on keyframe 2 (the parallax floor sends them
+    there); the keyframe is handed on at frame 5 (a low ``max_flow_fraction``). With
+    ``keyframes.handon_min_angle_deg`` the matches whose keyframe pixel carried no depth are
+    triangulated under frame 5's PnP pose and join the moved depth: exact flow, so their depth is
+    the box's to ~1% (the PnP pose's own error); the poses are the same up to the hand-on and frame 6,
+    solved on the new depth too, is right. Off (the default),
+    only the moved depth is handed on."""
+    poses = trajectory([([0.0, YAW, 0.0], DIRECTION), ([0.0, YAW, 0.0], DIRECTION)]
+                       + [([0.0, YAW, 0.0], 0.15 * DIRECTION)] * 4)
+    keys = {"depth_min_parallax_deg": 0.42, "max_flow_fraction": 0.03}
+
+    def run(angle_deg: float) -> tuple[list[FrameResult], dict]:
+        cfg = merge_dict(make_config(0), {"keyframes": {**keys, "handon_min_angle_deg": angle_deg}}, "test")
+        odo = Odometry(CAMERA, BoxFlow(poses), TriangulatedDepth((H, W)), cfg)
+        image = np.zeros((H, W, 3), np.uint8)
+        res, tracks = [], {}
+        for i in range(len(poses)):
+            res.append(odo.step(i, None, image))
+            tracks[i] = odo.keyframe.tracks
+        return res, tracks
+
+    off, off_tracks = run(0.0)
+    on, on_tracks = run(0.5)
+    for res in (off, on):
+        assert [r.branch for r in res] == [Branch.INIT, Branch.TWO_VIEW, Branch.TWO_VIEW] + [Branch.PNP] * 4
+        assert [r.ref_index for r in res[3:]] == [2, 2, 2, 5], [r.reason for r in res]
+        assert "keyframe handed on at mean flow" in res[5].reason
+    assert "new points" not in off[5].reason
+    n_new = int(on[5].reason.split(" with ")[1].split(" new points")[0])
+    assert on[5].reason.endswith(f"with {n_new} new points triangulated under its PnP pose"), on[5].reason
+    carried = on_tracks[4]  # keyframe 2's tracks, held until frame 5
+    new = on_tracks[5].ids > carried.ids.max()
+    assert int(new.sum()) == n_new > 1000
+    assert len(on_tracks[5]) == len(off_tracks[5]) + n_new  # the moved depth is the same
+    tr = on_tracks[5]
+    true = box_depth(poses[5])[np.rint(tr.pts[new, 1]).astype(int), np.rint(tr.pts[new, 0]).astype(int)]
+    rel = np.abs(tr.depth[new] / true - 1)  # the trajectory's unit is the first step, 1 m like the box
+    assert np.median(rel) < 0.01 and np.percentile(rel, 95) < 0.05, (np.median(rel), np.percentile(rel, 95))
+    assert np.all(tr.weight[new] >= np.radians(0.5) ** 2)
+    for a, b in zip(off[:6], on[:6]):  # up to the hand-on the runs are the same
+        assert np.allclose(a.T_world_cam, b.T_world_cam, atol=1e-12)
+    T_est = invert_T(on[5].T_world_cam) @ on[6].T_world_cam  # frame 6 is solved on the new depth too
+    T_true = invert_T(poses[5]) @ poses[6]
+    assert rot_err_deg(T_est[:3, :3], T_true[:3, :3]) < 0.01
+    assert np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]) < 0.02 * np.linalg.norm(T_true[:3, 3])
