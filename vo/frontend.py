@@ -305,33 +305,42 @@ class FrontEnd:
                             np.concatenate([tracks.depth, extra.depth]), np.concatenate([tracks.weight, extra.weight]))
         return replace(sol, reason=sol.reason + note, tracks=tracks, step_norm=None)
 
-    def handon_points(self, ref: ReferenceDepth | None, m: Matches, sol: Solution, min_angle_rad: float) -> Tracks:
+    def handon_points(self, ref: ReferenceDepth | None, m: Matches, sol: Solution,
+                      min_angle_rad: float) -> tuple[Tracks, float | None]:
         """New depth for a keyframe handed on after PnP: the drawn matches ``m`` whose keyframe
-        pixel carries no depth in ``ref``, triangulated under the solved (scaled) pose of ``sol``,
-        as tracks of the current frame (new ids, weight = ray angle squared).
+        pixel carries no depth in ``ref``, triangulated along the solved pose of ``sol``, as tracks
+        of the current frame (new ids, weight = ray angle squared). ``(tracks, scale)``.
 
-        A match is kept when its Sampson distance under that pose is at most
+        A match is used when its Sampson distance under that pose is at most
         ``geometry.epi_inlier_px`` (the pose explains it), its rays meet at ``min_angle_rad``
-        or more, and the point lies in front of both cameras."""
+        or more, and the point lies in front of both cameras. The length of the step comes from
+        the keyframe's depth, as for a two-view step: the matches that do carry depth fix the
+        scale (:func:`~trianflow_vo.geometry.scale.align_scale`, at least ``scale.min_points``),
+        so an error of PnP's translation length does not enter the new depth. Without enough of
+        them (or without ``ref``) no tracks are made and the scale is None."""
         T_cur_ref = invert_T(sol.T_ref_cam)
         R, t = T_cur_ref[:3, :3], T_cur_ref[:3, 3]
         base = float(np.linalg.norm(t))
-        if base <= 0 or m.idx.size == 0:
-            return Tracks.empty()
-        free = np.ones(m.idx.size, dtype=bool) if ref is None else ref.depth.ravel()[m.idx] <= 0
-        q1, q2 = m.pts_ref[free], m.pts_cur[free]
+        if ref is None or base <= 0 or m.idx.size == 0:
+            return Tracks.empty(), None
         t_unit = t / base
+        q1, q2 = m.pts_ref, m.pts_cur
         near = sampson_distance(fundamental_from_pose(R, t_unit, self.K), q1, q2) <= self.cfg.geometry.epi_inlier_px
-        X, valid, angle = triangulate_midpoint(q1[near], q2[near], self.K, R, t_unit, min_angle=min_angle_rad)
-        if not valid.any():
-            return Tracks.empty()
-        X_cur = (X[valid] @ R.T + t_unit) * base
+        X, valid, angle = triangulate_midpoint(q1, q2, self.K, R, t_unit, min_angle=min_angle_rad)
+        valid &= near
+        d_ref = ref.depth.ravel()[m.idx]
+        carried = valid & (d_ref > 0)
+        scale, ok = align_scale(X[carried, 2], d_ref[carried], min_points=self.cfg.scale.min_points)
+        if not ok:
+            return Tracks.empty(), None
+        free = valid & (d_ref <= 0)
+        X_cur = (X[free] @ R.T + t_unit) * scale
         uv = project(X_cur, self.K)
         h, w = self.camera.size_hw
         xi, yi = np.rint(uv[:, 0]), np.rint(uv[:, 1])
         keep = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h) & (X_cur[:, 2] > 0)
         n = int(keep.sum())
-        return Tracks(self.track_ids.new(n), uv[keep], X_cur[keep, 2], angle[valid][keep] ** 2)
+        return Tracks(self.track_ids.new(n), uv[keep], X_cur[keep, 2], angle[free][keep] ** 2), scale / base
 
     def _relative_pose(self, m: Matches, tm: StageTimer):
         """``(RelativePose, n_inliers)`` of the matches, or ``(None, n)`` when degenerate."""

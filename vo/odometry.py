@@ -239,9 +239,13 @@ class Odometry:
         extra = None
         if min_deg > 0 and sol.branch == Branch.PNP:
             t0 = time.perf_counter()
-            extra = self.front.handon_points(ref, m, sol, np.radians(min_deg))
+            extra, ratio = self.front.handon_points(ref, m, sol, np.radians(min_deg))
             tm.add("triangulate", t0)
-            note += f" with {len(extra)} new points triangulated under its PnP pose"
+            if ratio is None:
+                note += " (too few points with depth to scale new ones)"
+            else:
+                note += (f" with {len(extra)} new points triangulated along its PnP pose, "
+                         f"step length {ratio:.3f} x PnP's from the keyframe depth")
         return self.front.transfer_keyframe(kf, sol, note, extra)
 
     def _parallax_deg(self, parallax_px: float) -> float:

@@ -599,7 +599,8 @@ def test_a_keyframe_handed_on_after_pnp_gets_new_depth_triangulated_under_its_po
     """Two full steps, then short ones solved by PnP on keyframe 2 (the parallax floor sends them
     there); the keyframe is handed on at frame 5 (a low ``max_flow_fraction``). With
     ``keyframes.handon_min_angle_deg`` the matches whose keyframe pixel carried no depth are
-    triangulated under frame 5's PnP pose and join the moved depth: exact flow, so their depth is
+    triangulated along frame 5's PnP pose, scaled by the matches that carry depth, and join the moved
+    depth: exact flow, so their depth is
     the box's to ~1% (the PnP pose's own error); the poses are the same up to the hand-on and frame 6,
     solved on the new depth too, is right. Off (the default),
     only the moved depth is handed on."""
@@ -625,7 +626,10 @@ def test_a_keyframe_handed_on_after_pnp_gets_new_depth_triangulated_under_its_po
         assert "keyframe handed on at mean flow" in res[5].reason
     assert "new points" not in off[5].reason
     n_new = int(on[5].reason.split(" with ")[1].split(" new points")[0])
-    assert on[5].reason.endswith(f"with {n_new} new points triangulated under its PnP pose"), on[5].reason
+    ratio = float(on[5].reason.split("step length ")[1].split(" x")[0])
+    assert on[5].reason.endswith(f"with {n_new} new points triangulated along its PnP pose, step length "
+                                 f"{ratio:.3f} x PnP's from the keyframe depth"), on[5].reason
+    assert ratio == pytest.approx(1.0, abs=0.01)  # exact flow: PnP's length and the depth's agree
     carried = on_tracks[4]  # keyframe 2's tracks, held until frame 5
     new = on_tracks[5].ids > carried.ids.max()
     assert int(new.sum()) == n_new > 1000
@@ -641,3 +645,36 @@ def test_a_keyframe_handed_on_after_pnp_gets_new_depth_triangulated_under_its_po
     T_true = invert_T(poses[5]) @ poses[6]
     assert rot_err_deg(T_est[:3, :3], T_true[:3, :3]) < 0.01
     assert np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]) < 0.02 * np.linalg.norm(T_true[:3, 3])
+
+
+def test_new_depth_at_a_hand_on_takes_its_scale_from_the_keyframe_depth_not_from_pnp(monkeypatch):
+    """PnP made to return a translation 1.3x too long: the hand-on's new points are still scaled by
+    the keyframe's depth (the reason gives PnP's length 1/1.3 too long) and their depths are the
+    box's to ~1%; with PnP's own length they would be 30% too deep."""
+    real = frontend.solve_pnp
+
+    def long_pnp(*args, **kwargs):
+        (R, t, inl), ok = real(*args, **kwargs)
+        return (R, None if t is None else 1.3 * t, inl), ok
+
+    monkeypatch.setattr(frontend, "solve_pnp", long_pnp)
+    poses = trajectory([([0.0, YAW, 0.0], DIRECTION), ([0.0, YAW, 0.0], DIRECTION)]
+                       + [([0.0, YAW, 0.0], 0.15 * DIRECTION)] * 3)
+    cfg = merge_dict(make_config(0), {"keyframes": {"depth_min_parallax_deg": 0.42, "max_flow_fraction": 0.03,
+                                                    "handon_min_angle_deg": 0.5},
+                                      # the two-view steps are not checked against the (wrong) PnP
+                                      "scale": {"pnp_check_ratio": 0.0, "pnp_check_ratio_low": 0.0}}, "test")
+    odo = Odometry(CAMERA, BoxFlow(poses), TriangulatedDepth((H, W)), cfg)
+    image = np.zeros((H, W, 3), np.uint8)
+    res = [odo.step(i, None, image) for i in range(5)]
+    held = odo.keyframe.tracks
+    res.append(odo.step(5, None, image))
+    assert res[5].branch is Branch.PNP and res[5].is_keyframe, [r.reason for r in res]
+    ratio = float(res[5].reason.split("step length ")[1].split(" x")[0])
+    assert ratio == pytest.approx(1 / 1.3, rel=0.01)
+    tr = odo.keyframe.tracks
+    new = tr.ids > held.ids.max()
+    assert new.sum() > 1000
+    true = box_depth(poses[5])[np.rint(tr.pts[new, 1]).astype(int), np.rint(tr.pts[new, 0]).astype(int)]
+    rel = np.abs(tr.depth[new] / true - 1)
+    assert np.median(rel) < 0.015, np.median(rel)
