@@ -164,8 +164,8 @@ class Odometry:
         ``min_parallax_px``) give PnP/rotation with the keyframe kept (handed on under
         ``gric`` when its flow exceeds ``max_flow_fraction`` of the width, or the next
         frame's is expected past ``max_next_flow_fraction``, or a PnP's inlier ratio falls
-        under ``min_inlier_share`` of the first one's on this keyframe); else the two-view
-        step, after which the frame is the new keyframe."""
+        under ``min_inlier_share`` of the first one's on this keyframe; :meth:`_hand_on`); else
+        the two-view step, after which the frame is the new keyframe."""
         kc = self.cfg.keyframes
         median_flow = float(np.median(m.flow_mag))
         if median_flow < kc.static_flow_px:
@@ -218,7 +218,8 @@ class Odometry:
             if mean_flow > kc.max_flow_fraction * width:
                 note = f"; keyframe handed on at mean flow {mean_flow:.1f} px"
             elif next_flow > kc.max_next_flow_fraction * width:
-                note = f"; keyframe handed on at mean flow {mean_flow:.1f} px, {next_flow:.1f} px expected at the next frame"
+                note = (f"; keyframe handed on at mean flow {mean_flow:.1f} px, "
+                        f"{next_flow:.1f} px expected at the next frame")
             elif (kc.min_inlier_share > 0 and ratio is not None and self._kf_ratio0 is not None
                   and ratio < kc.min_inlier_share * self._kf_ratio0):
                 # the keyframe's points are leaving the view (an orbit, an occluder): its depth still
@@ -233,8 +234,10 @@ class Odometry:
                  tm: StageTimer) -> Solution:
         """The PnP / rotation-only frame ``sol`` becomes the keyframe: ``kf``'s depth moved into it
         and, with ``keyframes.handon_min_angle_deg``, after PnP the matches without depth
-        triangulated under its pose (the view turns towards parts of the scene the held depth
-        does not cover)."""
+        triangulated along its pose and scaled by ``kf``'s depth
+        (:meth:`~trianflow_vo.frontend.FrontEnd.handon_points`; the view turns towards parts of
+        the scene the held depth does not cover). ``note`` (the rule that handed it on) and what
+        was added go into the reason."""
         min_deg = self.cfg.keyframes.handon_min_angle_deg
         extra = None
         if min_deg > 0 and sol.branch == Branch.PNP:
