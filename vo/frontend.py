@@ -335,10 +335,7 @@ class FrontEnd:
             return Tracks.empty(), None
         free = valid & (d_ref <= 0)
         X_cur = (X[free] @ R.T + t_unit) * scale
-        uv = project(X_cur, self.K)
-        h, w = self.camera.size_hw
-        xi, yi = np.rint(uv[:, 0]), np.rint(uv[:, 1])
-        keep = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h) & (X_cur[:, 2] > 0)
+        uv, keep = self.camera.project(X_cur)
         n = int(keep.sum())
         return Tracks(self.track_ids.new(n), uv[keep], X_cur[keep, 2], angle[free][keep] ** 2), scale / base
 
