@@ -312,8 +312,10 @@ class FrontEnd:
         of the current frame (new ids, weight = ray angle squared). ``(tracks, scale)``.
 
         A match is used when its Sampson distance under that pose is at most
-        ``geometry.epi_inlier_px`` (the pose explains it), its rays meet at ``min_angle_rad``
-        or more, and the point lies in front of both cameras. The length of the step comes from
+        ``geometry.epi_inlier_px`` (the pose explains it), its rays meet at more than
+        ``min_angle_rad``, and it passes the two-view step's own triangulation checks
+        (:meth:`_triangulate_rays`: in front of both cameras, ``geometry``'s angle floors and
+        epipolar correction). The length of the step comes from
         the keyframe's depth, as for a two-view step: the matches that do carry depth fix the
         scale (:func:`~trianflow_vo.geometry.scale.align_scale`, at least ``scale.min_points``),
         so an error of PnP's translation length does not enter the new depth. Without enough of
@@ -326,8 +328,8 @@ class FrontEnd:
         t_unit = t / base
         q1, q2 = m.pts_ref, m.pts_cur
         near = sampson_distance(fundamental_from_pose(R, t_unit, self.K), q1, q2) <= self.cfg.geometry.epi_inlier_px
-        X, valid, angle = triangulate_midpoint(q1, q2, self.K, R, t_unit, min_angle=min_angle_rad)
-        valid &= near
+        X, valid, angle = self._triangulate_rays(q1, q2, R, t_unit)
+        valid &= near & (angle > min_angle_rad)
         d_ref = ref.depth.ravel()[m.idx]
         carried = valid & (d_ref > 0)
         scale, ok = align_scale(X[carried, 2], d_ref[carried], min_points=self.cfg.scale.min_points)
