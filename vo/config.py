@@ -275,12 +275,12 @@ class KeyframeConfig(_Section):
                                         "first PnP frame's on the same held keyframe becomes the keyframe (its "
                                         "depth moved by the solved pose): the keyframe's points are fading; "
                                         "0 = off", range=_Range(0.0, 1.0))
-    handon_min_angle_deg: float = _opt(0.0, "policy gric: when a PnP frame becomes the keyframe, its matches to the "
+    handon_min_angle_deg: float = _opt(3.0, "policy gric: when a PnP frame becomes the keyframe, its matches to the "
                                             "held keyframe that carry no depth are triangulated along the PnP pose, "
                                             "scaled by the matches that do, and join the handed-on depth where their "
                                             "rays meet at this angle (degrees) or more: the depth follows the view "
-                                            "into new parts of the scene; 0 = only the carried depth is handed on "
-                                            "(7-Scenes stride 3 better, stride 1 worse: README)",
+                                            "into new parts of the scene; 0 = only the carried depth is handed on. "
+                                            "Lower angles add more points and pull the scale down (7-Scenes: README)",
                                        range=_Range(0.0, 90.0))
     max_flow_fraction: float = _opt(0.1, "policy gric: a PnP / rotation-only frame whose mean flow against the "
                                           "held keyframe exceeds this fraction of the image width becomes the "

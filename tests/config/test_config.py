@@ -33,7 +33,7 @@ DEFAULTS = {
               "depth_fit_trials": 100, "depth_fit_min_points": 100, "depth_max": 50.0, "pnp_check_ratio": 1.5,
               "pnp_check_ratio_low": 1.15, "pnp_check_low_parallax_px": 8.0},
     "keyframes": {"static_flow_px": 0.25, "policy": "gric", "min_parallax_px": 3.0, "max_direction_deg": 0.5, "init_min_parallax_px": 1.0,
-                  "depth_min_parallax_deg": 0.2, "min_inlier_share": 0.5, "handon_min_angle_deg": 0.0,
+                  "depth_min_parallax_deg": 0.2, "min_inlier_share": 0.5, "handon_min_angle_deg": 3.0,
                   "max_flow_fraction": 0.1, "max_next_flow_fraction": 0.125, "noise_floor_px": 0.1, "independent_matches": 500},
     "backend": {"kind": "window-ba", "window": 6, "fixed": 2,
                 "huber_px": 1.0, "max_iterations": 5, "every": 2, "max_tracks": 250, "cell_px": 32, "track_texture_px": 9,
