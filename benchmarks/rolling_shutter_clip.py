@@ -2,7 +2,8 @@
 
 Renders the room of ``handheld_indoor`` (``tests/synthetic_sequences.py``: exact images, known
 intrinsics, no blur, no distortion) along a trajectory in KITTI layout (one 3x4 camera-to-world
-pose per source frame, e.g. 7-Scenes kitchen's ``poses.txt``), re-expressed relative to its first
+pose per source frame, e.g. 7-Scenes kitchen's ``poses.txt``; read and checked by
+:func:`trianflow_vo.io.trajectory.read_trajectory`), re-expressed relative to its first
 pose and with its translations multiplied by ``--scale``. With ``--readout R`` (in frame intervals)
 the image has a rolling shutter: row ``r`` of source frame ``i`` is seen from the pose at time
 ``i + R * r / H`` (rotation slerped, translation linear between the two poses around it), rendered in
@@ -40,16 +41,6 @@ def _synthetic():
     import synthetic_sequences
 
     return synthetic_sequences
-
-
-def poses_kitti(path: Path) -> np.ndarray:
-    """``(N, 4, 4)`` camera-to-world poses of a KITTI-layout file (12 numbers a line)."""
-    a = np.loadtxt(path, ndmin=2)
-    if a.shape[1] != 12:
-        raise ValueError(f"{path}: expected 12 numbers a line, got {a.shape[1]}")
-    T = np.tile(np.eye(4), (len(a), 1, 1))
-    T[:, :3] = a.reshape(-1, 3, 4)
-    return T
 
 
 def pose_interpolator(T_world_cam: np.ndarray):
@@ -98,7 +89,9 @@ def make_clip(poses_path: Path, out: Path, scale: float = 1.0, stride: int = 3, 
     syn = _synthetic()
     if stride < 1 or bands < 1 or readout < 0 or scale <= 0:
         raise ValueError("stride and bands must be >= 1, readout >= 0 and scale > 0")
-    T = poses_kitti(poses_path)
+    from trianflow_vo.io.trajectory import read_trajectory
+
+    T = read_trajectory(poses_path).poses
     if frames is not None:
         T = T[:frames]
     T = np.linalg.inv(T[0]) @ T
@@ -115,6 +108,8 @@ def make_clip(poses_path: Path, out: Path, scale: float = 1.0, stride: int = 3, 
 
 
 def main(argv=None) -> int:
+    from trianflow_vo.errors import VOError
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("poses", type=Path, help="KITTI-layout camera-to-world poses of the path to follow")
     ap.add_argument("out", type=Path)
@@ -129,7 +124,7 @@ def main(argv=None) -> int:
     try:
         size = tuple(int(v) for v in a.size.lower().split("x"))
         n = make_clip(a.poses, a.out, a.scale, a.stride, a.readout, a.bands, a.focal, size, a.frames)
-    except (OSError, ValueError) as e:
+    except (OSError, ValueError, VOError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     print(f"wrote {n} frames to {a.out}")
