@@ -139,6 +139,10 @@ class InputConfig(_Section):
         check=_positive_focal, rule="fx, fy > 0", sep=",", form="fx,fy,cx,cy or [fx, fy, cx, cy]")
     calib: Path | None = _opt(
         None, "calibration file: KITTI calib.txt, a 3x3 K or 'fx fy cx cy'; null = the sequence's own")
+    readout: float = _opt(0.0, "rolling shutter: time from reading the top row to the bottom row, in source frame "
+                               "intervals (0 = global shutter; negative = rows read bottom to top); each match is "
+                               "moved to its frame's middle-row instant with the motion of the last frame step",
+                          range=_Range(-1.0, 1.0))
 
     def _check_together(self, source: str) -> None:
         if self.end is not None and self.end <= self.start:

@@ -2,7 +2,9 @@
 
 ``flow -> matches -> relative pose -> triangulation -> scale``, as in TrianFlow.
 Every function here solves the current frame against the reference keyframe and
-returns a :class:`Solution`; none of them changes any state. The order of the
+returns a :class:`Solution`; none of them changes any state (the one exception is the
+pair's rolling-shutter motion, which :meth:`FrontEnd.set_shutter` sets before a pair
+is solved). The order of the
 branches, and the state they update, is :class:`trianflow_vo.odometry.Odometry`'s.
 
 Frames: ``T_world_ref`` is the keyframe's camera-to-world pose, a relative pose
@@ -32,6 +34,7 @@ from trianflow_vo.geometry.model_selection import direction_sigma, select_motion
 from trianflow_vo.geometry.parallax import local_angle_floor
 from trianflow_vo.geometry.pnp import solve_pnp
 from trianflow_vo.geometry.relative_pose import estimate_relative_pose
+from trianflow_vo.geometry.rolling_shutter import dense_inverse_depth, to_global_shutter
 from trianflow_vo.geometry.rotation import fit_rotation
 from trianflow_vo.geometry.scale import align_scale, fit_scale_ransac
 from trianflow_vo.geometry.se3 import invert_T, make_T
@@ -184,6 +187,33 @@ class FrontEnd:
         h, w = camera.size_hw
         gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
         self._grid = np.stack([gx.ravel(), gy.ravel()], 1)
+        # rolling shutter (input.readout) of the pair being solved: (twist of the keyframe, twist of
+        # the current frame, (h w,) inverse depth of the keyframe or None), each twist (omega, v) or None
+        self.shutter: tuple | None = None
+        self._dense_gs: tuple[np.ndarray, np.ndarray] | None = None
+
+    def set_shutter(self, twist_ref, twist_cur, depth: np.ndarray | None) -> None:
+        """The camera's motion while the rows of the keyframe and of the current frame were read,
+        for ``input.readout``: each twist ``(omega (3,), v (3,))`` per source frame interval, or
+        None (that frame's pixels are left as they are). ``depth``: ``(h, w)`` keyframe depth
+        (0 = none), made dense by :func:`~trianflow_vo.geometry.rolling_shutter.dense_inverse_depth`
+        for the translation part (also for the current frame's pixels); None: rotation only.
+        Until the next call :meth:`pixels` returns matches moved to each frame's middle-row instant."""
+        self._dense_gs = None
+        self.shutter = None
+        if self.cfg.input.readout == 0 or (twist_ref is None and twist_cur is None):
+            return
+        inv = None
+        if depth is not None and np.any(depth > 0):
+            inv = dense_inverse_depth(depth).ravel()
+        self.shutter = (twist_ref, twist_cur, inv)
+
+    def _global_shutter(self, pts: np.ndarray, twist, inv_depth: np.ndarray | None) -> np.ndarray:
+        if twist is None:
+            return pts
+        omega, v = twist
+        return to_global_shutter(pts, self.K, self.camera.size_hw[0], self.cfg.input.readout, omega,
+                                 None if inv_depth is None else v, None if inv_depth is None else 1.0 / inv_depth)
 
     # -- matches ------------------------------------------------------------------------
     def draw(self, score: np.ndarray, n: int, extra: np.ndarray | None = None) -> np.ndarray:
@@ -204,7 +234,25 @@ class FrontEnd:
     def pixels(self, idx: np.ndarray, fw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(pts_ref, pts_cur)`` ``(N, 2)`` float64 of flat indices ``idx`` under flow ``fw``."""
         q1 = self._grid[idx].astype(np.float64)
-        return q1, q1 + fw.reshape(-1, 2)[idx]
+        q2 = q1 + fw.reshape(-1, 2)[idx]
+        if self.shutter is None:
+            return q1, q2
+        tw_ref, tw_cur, inv = self.shutter
+        inv = None if inv is None else inv[idx]
+        return self._global_shutter(q1, tw_ref, inv), self._global_shutter(q2, tw_cur, inv)
+
+    def epipolar_map(self, F: np.ndarray, fw: np.ndarray) -> np.ndarray:
+        """``(h, w)`` float32 distance of every pixel's match under flow ``fw`` to its epipolar line
+        ``F x`` (:func:`~trianflow_vo.geometry.epipolar.epipolar_distance_map`), with the pair's
+        rolling-shutter correction when there is one."""
+        if self.shutter is None:
+            return epipolar_distance_map(F, fw)
+        if self._dense_gs is None:
+            self._dense_gs = self.pixels(np.arange(self._grid.shape[0]), fw)
+        p1, p2 = self._dense_gs
+        lines = np.c_[p1, np.ones(len(p1))] @ F.T
+        num = np.abs(np.sum(lines[:, :2] * p2, 1) + lines[:, 2])
+        return (num / (np.hypot(lines[:, 0], lines[:, 1]) + 1e-12)).reshape(fw.shape[:2]).astype(np.float32)
 
     def match(self, keyframe: Keyframe, prepared, tm: StageTimer) -> Matches:
         """Flow both ways between ``keyframe`` and the current frame, masks, and drawn matches."""
@@ -357,7 +405,7 @@ class FrontEnd:
         triangulate them: ``(idx2 (N,), q1 (N, 2), q2 (N, 2), X (N, 3) keyframe camera, valid, angle)``."""
         g = self.cfg.geometry
         t0 = time.perf_counter()
-        score2 = inlier_score(epipolar_distance_map(rel.F, m.fw), g.epi_inlier_px) * m.score
+        score2 = inlier_score(self.epipolar_map(rel.F, m.fw), g.epi_inlier_px) * m.score
         anchors = None
         if ref is not None and ref.sparse:
             anchors = self._capped(np.flatnonzero((ref.depth.ravel() > 0) & (score2.ravel() > 0)))
@@ -389,7 +437,9 @@ class FrontEnd:
         T_ref_cam = invert_T(make_T(R, t_s))
         tracks = self._new_tracks(ref, idx, X_s @ R.T + t_s, weight)
         Tw = keyframe.T_world_cam
-        gray = keyframe.image[np.rint(q1[:, 1]).astype(int), np.rint(q1[:, 0]).astype(int)]
+        h, w = keyframe.image.shape[:2]  # q1 may lie off the grid (rolling-shutter correction)
+        gray = keyframe.image[np.clip(np.rint(q1[:, 1]).astype(int), 0, h - 1),
+                              np.clip(np.rint(q1[:, 0]).astype(int), 0, w - 1)]
         return Solution(branch, how, Tw @ T_ref_cam, T_ref_cam, stats, pts_ref=q1, pts_cur=q2,
                         points_world=X_s @ Tw[:3, :3].T + Tw[:3, 3], point_colors=gray[:, ::-1].copy(),
                         tracks=tracks, step_norm=float(np.linalg.norm(t_s)))
@@ -482,7 +532,7 @@ class FrontEnd:
         the current frame ``cur`` (RANSAC line through the origin). When the flow is
         small, the geometry degenerate or the fit fails: PnP of the keyframe's
         network depth ``ref`` (below ``scale.depth_max``) against the matches."""
-        sc, K = self.cfg.scale, self.K
+        sc = self.cfg.scale
         mean_flow = float(m.flow_mag.mean())
         if mean_flow <= sc.depth_min_flow_px:
             return self._pnp_on_depth(keyframe, ref, m, R_rot, f"mean flow {mean_flow:.2f} px <= "

@@ -21,6 +21,7 @@ from trianflow_vo.depth.base import DepthPrior, ReferenceDepth
 from trianflow_vo.flow.base import FlowSource
 from trianflow_vo.frame import Branch, FrameResult, FrameStats, FrameView
 from trianflow_vo.frontend import FrontEnd, Matches, Solution, failed_solution, identity_solution
+from trianflow_vo.geometry.rolling_shutter import twist_per_frame
 from trianflow_vo.geometry.se3 import invert_T
 from trianflow_vo.keyframe import Keyframe, Tracks
 from trianflow_vo.timing import StageTimer
@@ -67,6 +68,12 @@ class Odometry:
         self._held_last: tuple[int, np.ndarray, object, Solution] | None = None
         # PnP inlier ratio of the first frame kept on the current keyframe (keyframes.min_inlier_share)
         self._kf_ratio0: float | None = None
+        # rolling shutter (input.readout): the camera twist per source frame interval at the last
+        # frame and at the keyframe, from the poses solved so far (constant velocity), and the
+        # last frame's source index
+        self._twist_last: tuple[np.ndarray, np.ndarray] | None = None
+        self._twist_kf: tuple[np.ndarray, np.ndarray] | None = None
+        self._index_last: int | None = None
 
     def describe(self) -> dict:
         return {"odometry": "trianflow", "scale_source": self.scale_source, "flow_source": self.flow.describe(),
@@ -93,6 +100,7 @@ class Odometry:
             self._compute_ahead(prepared, next_image)
             return self._start(frame_index, timestamp, image, prepared, tm)
         kf = self.keyframe
+        self._shutter(self._twist_kf, kf)
         m = self.front.match(kf, prepared, tm)
         # guess: this frame ends like the last one (becomes the keyframe, or keeps it)
         self._compute_ahead(prepared if self._new_keyframe_last else kf.prepared, next_image)
@@ -120,6 +128,14 @@ class Odometry:
                     sol, m, ref, stats = again
         return self._commit(frame_index, timestamp, image, prepared, m, ref, sol, stats, tm)
 
+    def _shutter(self, twist_ref, kf: Keyframe) -> None:
+        """Tell the front-end how the camera moved while the reference ``kf``'s rows and the current
+        frame's were read (the current frame: the last frame's twist, constant velocity)."""
+        if self.cfg.input.readout == 0:
+            return
+        ref = self.depth.reference(kf)
+        self.front.set_shutter(twist_ref, self._twist_last, None if ref is None else ref.depth)
+
     def _too_few(self, m: Matches) -> bool:
         """Too few reliable matches to solve a frame pair."""
         return m.idx.size < max(8, self.cfg.geometry.min_inliers)
@@ -141,6 +157,7 @@ class Odometry:
         index, image, prepared, last_sol = self._held_last
         moved = self.front.transfer_keyframe(kf, last_sol, "")
         via = Keyframe(index, image, prepared, kf.T_world_cam @ last_sol.T_ref_cam, moved.tracks)
+        self._shutter(self._twist_last, via)
         m = self.front.match(via, cur.prepared, tm)
         if self._too_few(m):
             return None
@@ -286,6 +303,7 @@ class Odometry:
         self.keyframe = Keyframe(frame_index, image, prepared, np.eye(4), Tracks.empty())
         self._kf_line = self.line
         self.T_world_last = np.eye(4)
+        self._index_last, self._twist_last, self._twist_kf = frame_index, None, None
         self._reference(self.keyframe, tm)  # a network computes the first keyframe's depth now
         line, self.line = self.line, self.line + 1
         return FrameResult(line, frame_index, timestamp, np.eye(4), Branch.INIT, "first frame", None, np.eye(4),
@@ -308,6 +326,12 @@ class Odometry:
                 self.last_step_norm = sol.step_norm
             self.keyframe = Keyframe(frame_index, image, prepared, sol.T_world_cam, sol.tracks)
             self._kf_line = self.line
+        if self._index_last is not None and frame_index > self._index_last:
+            self._twist_last = twist_per_frame(invert_T(self.T_world_last) @ sol.T_world_cam,
+                                               frame_index - self._index_last)
+        self._index_last = frame_index
+        if is_keyframe:
+            self._twist_kf = self._twist_last
         self.T_world_last = sol.T_world_cam
         line, self.line = self.line, self.line + 1
         view = FrameView.of(image=image, depth=None if ref is None else ref.depth, flow=m.fw, flow_bw=m.bw,

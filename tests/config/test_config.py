@@ -21,7 +21,8 @@ from trianflow_vo.errors import VOError
 REPO = Path(__file__).resolve().parents[2]
 
 DEFAULTS = {
-    "input": {"start": 0, "end": None, "stride": 1, "size": None, "intrinsics": None, "calib": None},
+    "input": {"start": 0, "end": None, "stride": 1, "size": None, "intrinsics": None, "calib": None,
+              "readout": 0.0},
     "flow": {"model": None, "dis_preset": "medium", "ahead": True},
     "depth": {"model": None, "fusion": True, "decay": 0.8, "max_log_gap": 0.3},
     "sampling": {"n_samples": 6000, "top_ratio": 0.2, "max_anchors": 6000, "seed": 0},
@@ -176,6 +177,7 @@ def test_choice_range_and_type_errors():
         ({"sampling": {"n_samples": 99}}, "sampling.n_samples: 99 is out of range [100, 100000]"),
         ({"runtime": {"threads": 65}}, "runtime.threads: 65 is out of range [1, 64]"),
         ({"input": {"stride": 0}}, "input.stride: 0 is out of range; must be >= 1"),
+        ({"input": {"readout": -1.5}}, "input.readout: -1.5 is out of range [-1, 1]"),
         ({"depth": {"max_log_gap": 0.0}}, "depth.max_log_gap: 0.0 is out of range; must be > 0"),
         ({"scale": {"pnp_check_ratio": 0.5}}, "scale.pnp_check_ratio: 0.5 is out of range; must be 0 (off) or > 1"),
         ({"input": {"start": 2.5}}, "cfg.yaml: input.start: 2.5 is not an integer"),

@@ -678,3 +678,99 @@ def test_new_depth_at_a_hand_on_takes_its_scale_from_the_keyframe_depth_not_from
     true = box_depth(poses[5])[np.rint(tr.pts[new, 1]).astype(int), np.rint(tr.pts[new, 0]).astype(int)]
     rel = np.abs(tr.depth[new] / true - 1)
     assert np.median(rel) < 0.015, np.median(rel)
+
+
+def _rodrigues_many(rvecs: np.ndarray) -> np.ndarray:
+    """``(N, 3, 3)`` rotation matrices of rotation vectors ``rvecs`` ``(N, 3)``."""
+    th = np.linalg.norm(rvecs, axis=1)
+    k = rvecs / np.maximum(th, 1e-300)[:, None]
+    Kx = np.zeros((len(rvecs), 3, 3))
+    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    Kx -= Kx.transpose(0, 2, 1)
+    s, c = np.sin(th)[:, None, None], np.cos(th)[:, None, None]
+    return np.eye(3) + s * Kx + (1 - c) * (Kx @ Kx)
+
+
+def _path_at(steps, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-to-world ``(R (N, 3, 3), c (N, 3))`` at (fractional) frame times ``t`` ``(N,)`` of
+    :func:`trajectory` ``steps``: within a step the rotation vector and the translation grow
+    linearly (the motion the step's twist describes)."""
+    t = np.asarray(t, dtype=np.float64)
+    k = np.clip(np.floor(t).astype(int), 0, len(steps) - 1)
+    R, c = np.empty(t.shape + (3, 3)), np.empty(t.shape + (3,))
+    for kk in np.unique(k):
+        sel = k == kk
+        T = trajectory(steps[:kk])[-1]
+        s = (t[sel] - kk)[:, None]
+        rvec, tr = (np.asarray(x, float) for x in steps[kk])
+        R[sel] = T[:3, :3] @ _rodrigues_many(s * rvec)
+        c[sel] = (s * tr) @ T[:3, :3].T + T[:3, 3]
+    return R, c
+
+
+class RollingShutterBoxFlow(BoxFlow):
+    """Exact flow between rolling-shutter views of the box: row ``y`` of frame ``i`` is seen from
+    the pose at time ``i + readout (y - (H - 1) / 2) / H`` (frame ``i``'s pose stands for its
+    middle row, as ``input.readout`` assumes)."""
+
+    def __init__(self, steps, readout: float):
+        super().__init__(trajectory(steps))
+        # the last frame's lower rows are read after its pose: the motion goes on as the last step
+        self.steps, self.readout = list(steps) + [steps[-1]], readout
+        gx, gy = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+        self.grid = np.stack([gx.ravel(), gy.ravel()], -1)
+
+    def _tau(self, v):
+        return self.readout * (v - 0.5 * (H - 1)) / H
+
+    def _points(self, i: int) -> np.ndarray:
+        """``(H W, 3)`` world points seen by the pixels of frame ``i``, each from its row's pose."""
+        R, c = _path_at(self.steps, i + self._tau(self.grid[:, 1]))
+        ray = np.c_[(self.grid - K[:2, 2]) / np.diag(K)[:2], np.ones(len(self.grid))]
+        ray_w = np.einsum("nij,nj->ni", R, ray)
+        lam = np.full(len(ray), np.inf)
+        for n, d in PLANES:
+            den = ray_w @ n
+            with np.errstate(divide="ignore", invalid="ignore"):
+                l = (d - c @ n) / den
+            lam = np.minimum(lam, np.where((den > 1e-12) & (l > 0), l, np.inf))
+        return c + lam[:, None] * ray_w
+
+    def _seen(self, P: np.ndarray, j: int) -> np.ndarray:
+        """``(N, 2)`` pixels where frame ``j`` sees world points ``P`` ``(N, 3)``: the row's time
+        and the projection agree (fixed-point iteration)."""
+        v = np.full(len(P), 0.5 * (H - 1))
+        for _ in range(10):
+            R, c = _path_at(self.steps, j + self._tau(v))
+            Xc = np.einsum("nji,nj->ni", R, P - c)
+            uv = Xc[:, :2] / Xc[:, 2:3] * np.diag(K)[:2] + K[:2, 2]
+            v = uv[:, 1]
+        return uv
+
+    def flow_pair(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+        fw = (self._seen(self._points(a), b) - self.grid).reshape(H, W, 2)
+        bw = (self._seen(self._points(b), a) - self.grid).reshape(H, W, 2)
+        return fw.astype(np.float32), bw.astype(np.float32)
+
+
+def test_rolling_shutter_correction_recovers_the_steps():
+    """Five steps of a box seen through a rolling shutter read out in half a frame (exact flow):
+    with ``input.readout`` (each row moved to the middle row's instant with the twist of the last
+    solved step and the keyframe's depth) the steps after the first are 4-10x closer to the truth."""
+    steps = [([0.0, 0.03, 0.01], 0.2 * DIRECTION)] * 5
+    poses = trajectory(steps)
+    errs = {}
+    for readout in (0.0, 0.5):
+        cfg = merge_dict(make_config(), {"input": {"readout": readout}}, "test")
+        recs = run_odometry(poses, flow=RollingShutterBoxFlow(steps, 0.5), config=cfg)
+        assert [r.branch for r in recs] == [Branch.INIT] + [Branch.TWO_VIEW] * 5, [r.reason for r in recs]
+        e = []
+        for k in range(2, len(poses)):  # the first step has no motion to correct with yet
+            T_true = invert_T(poses[k - 1]) @ poses[k]
+            T_est = invert_T(recs[k - 1].T_world_cam) @ recs[k].T_world_cam
+            e.append((rot_err_deg(T_est[:3, :3], T_true[:3, :3]), angle_deg(T_est[:3, 3], T_true[:3, 3])))
+        errs[readout] = np.max(e, axis=0)
+    # measured: uncorrected 0.005 deg of rotation and 0.16-0.23 deg of direction per step (a global
+    # shutter gives ~1e-6); corrected 0.0005-0.0009 and 0.03-0.06
+    assert errs[0.0][0] > 0.003 and errs[0.0][1] > 0.1, errs  # the shutter matters here
+    assert errs[0.5][0] < errs[0.0][0] / 4 and errs[0.5][1] < errs[0.0][1] / 3, errs
