@@ -27,8 +27,8 @@ from trianflow_vo.depth.fusion import fuse_log_depth
 from trianflow_vo.flow.base import FlowSource
 from trianflow_vo.flow.masks import flow_scores
 from trianflow_vo.frame import Branch
-from trianflow_vo.geometry.epipolar import (epipolar_distance_map, inlier_score, project_to_epipolar_line,
-                                            sampson_distance)
+from trianflow_vo.geometry.epipolar import (epipolar_distance, epipolar_distance_map, inlier_score,
+                                            project_to_epipolar_line, sampson_distance)
 from trianflow_vo.geometry.fundamental import fundamental_from_pose
 from trianflow_vo.geometry.model_selection import direction_sigma, select_motion_model
 from trianflow_vo.geometry.parallax import local_angle_floor
@@ -190,7 +190,6 @@ class FrontEnd:
         # rolling shutter (input.readout) of the pair being solved: (twist of the keyframe, twist of
         # the current frame, (h w,) inverse depth of the keyframe or None), each twist (omega, v) or None
         self.shutter: tuple | None = None
-        self._dense_gs: tuple[np.ndarray, np.ndarray] | None = None
 
     def set_shutter(self, twist_ref, twist_cur, depth: np.ndarray | None) -> None:
         """The camera's motion while the rows of the keyframe and of the current frame were read,
@@ -199,7 +198,6 @@ class FrontEnd:
         (0 = none), made dense by :func:`~trianflow_vo.geometry.rolling_shutter.dense_inverse_depth`
         for the translation part (also for the current frame's pixels); None: rotation only.
         Until the next call :meth:`pixels` returns matches moved to each frame's middle-row instant."""
-        self._dense_gs = None
         self.shutter = None
         if self.cfg.input.readout == 0 or (twist_ref is None and twist_cur is None):
             return
@@ -247,12 +245,8 @@ class FrontEnd:
         rolling-shutter correction when there is one."""
         if self.shutter is None:
             return epipolar_distance_map(F, fw)
-        if self._dense_gs is None:
-            self._dense_gs = self.pixels(np.arange(self._grid.shape[0]), fw)
-        p1, p2 = self._dense_gs
-        lines = np.c_[p1, np.ones(len(p1))] @ F.T
-        num = np.abs(np.sum(lines[:, :2] * p2, 1) + lines[:, 2])
-        return (num / (np.hypot(lines[:, 0], lines[:, 1]) + 1e-12)).reshape(fw.shape[:2]).astype(np.float32)
+        p1, p2 = self.pixels(np.arange(self._grid.shape[0]), fw)
+        return epipolar_distance(F, p1, p2).reshape(fw.shape[:2]).astype(np.float32)
 
     def match(self, keyframe: Keyframe, prepared, tm: StageTimer) -> Matches:
         """Flow both ways between ``keyframe`` and the current frame, masks, and drawn matches."""

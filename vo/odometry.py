@@ -326,7 +326,7 @@ class Odometry:
                 self.last_step_norm = sol.step_norm
             self.keyframe = Keyframe(frame_index, image, prepared, sol.T_world_cam, sol.tracks)
             self._kf_line = self.line
-        if self._index_last is not None and frame_index > self._index_last:
+        if self.cfg.input.readout != 0 and self._index_last is not None and frame_index > self._index_last:
             self._twist_last = twist_per_frame(invert_T(self.T_world_last) @ sol.T_world_cam,
                                                frame_index - self._index_last)
         self._index_last = frame_index

@@ -18,6 +18,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from trianflow_vo.geometry.se3 import rotation_log
+
 
 def row_time(v: np.ndarray, height: int, readout: float) -> np.ndarray:
     """``(N,)`` capture time of pixel rows ``v`` ``(N,)`` relative to the middle row, in frame
@@ -72,11 +74,7 @@ def to_global_shutter(pts: np.ndarray, K: np.ndarray, height: int, readout: floa
 def twist_per_frame(T_prev_cur: np.ndarray, frames: float) -> tuple[np.ndarray, np.ndarray]:
     """``(omega (3,), v (3,))``: the constant twist (first order) that moves a camera by
     ``T_prev_cur`` ``(4, 4)`` (the later camera in the earlier one) over ``frames`` frame intervals."""
-    R = T_prev_cur[:3, :3]
-    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    ang = float(np.arccos(c))
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    omega = 0.5 * w if ang < 1e-8 else w * (ang / (2.0 * np.sin(ang)))
+    omega = rotation_log(T_prev_cur[:3, :3])
     return omega / frames, T_prev_cur[:3, 3] / frames
 
 
