@@ -211,7 +211,7 @@ class FrontEnd:
             return pts
         omega, v = twist
         return to_global_shutter(pts, self.K, self.camera.size_hw[0], self.cfg.input.readout, omega,
-                                 None if inv_depth is None else v, None if inv_depth is None else 1.0 / inv_depth)
+                                 None if inv_depth is None else v, inv_depth)
 
     # -- matches ------------------------------------------------------------------------
     def draw(self, score: np.ndarray, n: int, extra: np.ndarray | None = None) -> np.ndarray:

@@ -100,7 +100,7 @@ class Odometry:
             self._compute_ahead(prepared, next_image)
             return self._start(frame_index, timestamp, image, prepared, tm)
         kf = self.keyframe
-        self._shutter(self._twist_kf, kf)
+        self._shutter(self._twist_kf, kf, tm)
         m = self.front.match(kf, prepared, tm)
         # guess: this frame ends like the last one (becomes the keyframe, or keeps it)
         self._compute_ahead(prepared if self._new_keyframe_last else kf.prepared, next_image)
@@ -128,12 +128,12 @@ class Odometry:
                     sol, m, ref, stats = again
         return self._commit(frame_index, timestamp, image, prepared, m, ref, sol, stats, tm)
 
-    def _shutter(self, twist_ref, kf: Keyframe) -> None:
+    def _shutter(self, twist_ref, kf: Keyframe, tm: StageTimer) -> None:
         """Tell the front-end how the camera moved while the reference ``kf``'s rows and the current
         frame's were read (the current frame: the last frame's twist, constant velocity)."""
         if self.cfg.input.readout == 0:
             return
-        ref = self.depth.reference(kf)
+        ref = self._reference(kf, tm)
         self.front.set_shutter(twist_ref, self._twist_last, None if ref is None else ref.depth)
 
     def _too_few(self, m: Matches) -> bool:
@@ -157,7 +157,7 @@ class Odometry:
         index, image, prepared, last_sol = self._held_last
         moved = self.front.transfer_keyframe(kf, last_sol, "")
         via = Keyframe(index, image, prepared, kf.T_world_cam @ last_sol.T_ref_cam, moved.tracks)
-        self._shutter(self._twist_last, via)
+        self._shutter(self._twist_last, via, tm)
         m = self.front.match(via, cur.prepared, tm)
         if self._too_few(m):
             return None

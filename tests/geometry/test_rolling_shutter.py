@@ -54,7 +54,7 @@ def test_rotation_and_translation_are_undone_to_second_order():
     truth = _global(X0)
     before = np.abs(seen - truth).max()
     assert before > 2.0  # the shutter moves the outer rows by pixels
-    fixed = to_global_shutter(seen, K, H, readout, omega, v, X0[:, 2])
+    fixed = to_global_shutter(seen, K, H, readout, omega, v, 1.0 / X0[:, 2])
     assert np.abs(fixed - truth).max() < 0.1
     # rotation only leaves the translation's share (about f tau |v| / z)
     rot_only = to_global_shutter(seen, K, H, readout, omega)

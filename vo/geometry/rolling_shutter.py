@@ -28,7 +28,7 @@ def row_time(v: np.ndarray, height: int, readout: float) -> np.ndarray:
 
 
 def to_global_shutter(pts: np.ndarray, K: np.ndarray, height: int, readout: float, omega: np.ndarray,
-                      v: np.ndarray | None = None, depth: np.ndarray | float | None = None) -> np.ndarray:
+                      v: np.ndarray | None = None, inv_depth: np.ndarray | float | None = None) -> np.ndarray:
     """Pixels ``pts`` ``(N, 2)`` of a rolling-shutter image moved to the middle row's instant.
 
     Args:
@@ -38,8 +38,8 @@ def to_global_shutter(pts: np.ndarray, K: np.ndarray, height: int, readout: floa
         readout: top-to-bottom readout time in frame intervals (0 = global shutter).
         omega: ``(3,)`` angular velocity, radians per frame interval, camera frame.
         v: ``(3,)`` linear velocity per frame interval in the camera frame (the units of
-            ``depth``), or None to correct rotation only.
-        depth: ``(N,)`` or scalar depth of the points (needed with ``v``).
+            the depth), or None to correct rotation only.
+        inv_depth: ``(N,)`` or scalar inverse depth of the points (needed with ``v``).
 
     Returns:
         ``(N, 2)`` float64 pixels; points that the correction would put behind the
@@ -60,9 +60,8 @@ def to_global_shutter(pts: np.ndarray, K: np.ndarray, height: int, readout: floa
     X0[:, 0] = x + tau * (wy - wz * y)
     X0[:, 1] = y + tau * (wz * x - wx)
     X0[:, 2] = 1.0 + tau * (wx * y - wy * x)
-    if v is not None and depth is not None:
-        inv_d = 1.0 / np.broadcast_to(np.asarray(depth, dtype=np.float64), (len(pts),))
-        X0 += (tau * inv_d)[:, None] * np.asarray(v, dtype=np.float64)[None, :]
+    if v is not None and inv_depth is not None:
+        X0 += (tau * np.asarray(inv_depth, dtype=np.float64))[:, None] * np.asarray(v, dtype=np.float64)[None, :]
     z = X0[:, 2]
     ok = z > 1e-9
     out = pts.copy()
