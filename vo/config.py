@@ -349,6 +349,23 @@ class BackendConfig(_Section):
                                  "rejected", range=_Range(0.0, lo_open=True))
     max_rotation_deg: float = _opt(3.0, "an adjustment rotating a keyframe by more than this (degrees) is rejected",
                                    range=_Range(0.0, lo_open=True))
+    anchors: int = _opt(0, "old keyframes (out of the window) that see what the newest keyframe sees may join a "
+                           "window as held poses, their points linked into the newest keyframe through a dense "
+                           "flow; at most this many per window; 0 = off", range=_Range(0, 10))
+    anchor_keep: int = _opt(48, "old keyframes kept as possible anchors (their images at working resolution; when "
+                                "full, the one nearest another is dropped)", range=_Range(1, 1000))
+    anchor_revisit_ratio: float = _opt(1.0, "an old keyframe is revisited when the newest keyframe's centre is "
+                                            "nearer to it than this x the path travelled since; 1 = any old "
+                                            "keyframe in view, no return needed", range=_Range(0.0, 1.0, lo_open=True))
+    anchor_max_angle_deg: float = _opt(30.0, "largest angle between the optical axes of an anchor and the newest "
+                                             "keyframe (degrees)", range=_Range(0.0, 180.0, lo_open=True))
+    anchor_min_links: int = _opt(40, "fewest points linked from an anchor into the newest keyframe for it to join",
+                                 range=_Range(8))
+    anchor_max_parallax_px: float = _opt(100.0, "an old keyframe joins only when its points, turned to the newest "
+                                               "keyframe's orientation, are this near (median, pixels) to where "
+                                               "they project: what the flow can find", range=_Range(0.0, lo_open=True))
+    anchor_gate_px: float = _opt(20.0, "a linked pixel farther than this from where the current pose projects "
+                                       "the anchor's point is dropped (pixels)", range=_Range(0.0, lo_open=True))
 
     def _check_together(self, source: str) -> None:
         if self.window and self.fixed >= self.window:

@@ -112,3 +112,38 @@ def test_pnp_steps_get_their_own_translation_sigma():
     assert sig[3] == pytest.approx(0.5 * 2.0)  # median two-view step 2.0 > its own 0.1
     assert sig[4] == pytest.approx(0.5 * 2.0)  # a rotation-only hand-on: no translation measured
     assert sig[5] == pytest.approx(0.5 * 4.0)
+
+
+
+def _ate(p, gt):
+    from trianflow_vo.eval.align import umeyama
+
+    (s, R, t), ok = umeyama(p[:, :, 3], gt[: len(p), :, 3])
+    assert ok
+    return float(np.sqrt(np.mean(np.sum((s * p[:, :, 3] @ R.T + t - gt[: len(p), :, 3]) ** 2, axis=1))))
+
+
+def test_anchors_are_not_tried_on_a_drive_that_never_comes_back(long_drive, tmp_path, run_seq):
+    doc0, p0 = run_seq(long_drive, tmp_path / "off", "backend.window=4")
+    doc, p = run_seq(long_drive, tmp_path / "revisit", "backend.window=4", "backend.anchors=2",
+                     "backend.anchor_revisit_ratio=0.5")
+    assert doc["backend"]["anchors"] == 2 and doc0["backend"]["anchors"] == 0
+    assert doc["backend"]["anchor_tries"] == 0 and doc["backend"]["anchored_windows"] == 0
+    np.testing.assert_array_equal(p, p0)
+
+
+def test_anchors_link_old_keyframes_into_later_windows(tmp_path_factory, tmp_path, run_seq):
+    from synthetic_sequences import make_sequence
+
+    # a hand-held camera in a room: it stays near where it was, so older keyframes stay in view
+    seq = tmp_path_factory.mktemp("seq") / "room"
+    make_sequence("handheld_indoor", seq, n_frames=120, seed=1, size=(240, 320))
+    gt = np.loadtxt(seq / "poses.txt").reshape(-1, 3, 4)[::4]
+    doc0, p0 = run_seq(seq, tmp_path / "off", "backend.window=4", "input.stride=4")
+    # every old keyframe in view may anchor (the default ratio of 1: no return needed)
+    doc, p = run_seq(seq, tmp_path / "any", "backend.window=4", "input.stride=4", "backend.anchors=2")
+    be = doc["backend"]
+    assert be["anchored_windows"] >= 2 and be["anchor_links"] >= 2 * 40, be
+    assert doc0["backend"]["anchored_windows"] == 0
+    assert np.isfinite(p).all() and len(p) == len(p0)
+    assert _ate(p, gt) < 1.5 * _ate(p0, gt) + 1e-3, (_ate(p, gt), _ate(p0, gt))

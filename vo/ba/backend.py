@@ -27,6 +27,17 @@ keyframe. The depth rescale needs the blocking order: with it, windows are
 adjusted here (``concurrent`` false in ``run.json``). If the worker process dies,
 the run says so and adjusts in its own process from then on.
 
+With ``backend.anchors`` > 0, keyframes that leave the window go to a small archive
+(:mod:`~trianflow_vo.ba.anchors`: image, adjusted pose and points). When the newest keyframe
+of a window sees what an archived keyframe saw (with ``anchor_revisit_ratio`` < 1 only when
+the camera came back to it), the oldest such keyframes join the window as held poses and
+their points are linked into the newest keyframe: the old image is warped to the new view
+by the flow the newest keyframe's points and the relative pose predict, DIS finds what is
+left, and links that are forward-backward consistent, fit one fundamental matrix and lie
+within ``anchor_gate_px`` of their predicted pixel (one per ``cell_px`` cell) become tracks
+seen in the two keyframes only (not followed on). Counted in ``run.json``
+(``anchor_tries``, ``anchored_windows``, ``anchor_links``).
+
 A solve that fails (too few points, indeterminate system, error not reduced) or
 that would move a keyframe implausibly far (more than ``max_shift`` keyframe steps
 or ``max_rotation_deg``) keeps the front-end poses, is logged and counted; the run
@@ -45,6 +56,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from trianflow_vo.backend import PoseRevision
+from trianflow_vo.ba.anchors import (AnchorArchive, Archived, invert_flow_at, link_points, predicted_flow,
+                                     revisit_candidates, warp_to_new)
+from trianflow_vo.ba.graph import project
 from trianflow_vo.ba.tracks import TrackTable, texture_score
 from trianflow_vo.ba.worker import init_worker, solve_timed, warm_up
 from trianflow_vo.config import BackendConfig
@@ -72,6 +86,17 @@ def _depth_at(tracks, size_hw: tuple[int, int], uv: np.ndarray) -> np.ndarray:
     return dmap[yi, xi].astype(np.float64)
 
 
+def _one_per_cell(uv: np.ndarray, ok: np.ndarray, cell_px: int, width: int) -> np.ndarray:
+    """Indices of the valid pixels ``uv`` ``(N, 2)`` (``ok`` ``(N,)``), the first of each ``cell_px`` grid cell."""
+    idx = np.flatnonzero(ok)
+    if idx.size == 0:
+        return idx
+    n_cols = (width + cell_px - 1) // cell_px
+    cell = (uv[idx, 1] // cell_px).astype(np.int64) * n_cols + (uv[idx, 0] // cell_px).astype(np.int64)
+    _, first = np.unique(cell, return_index=True)
+    return idx[np.sort(first)]
+
+
 @dataclass(frozen=True)
 class _Outcome:
     """A concluded adjustment: revised poses (empty when it failed or was rejected), depth scales,
@@ -87,8 +112,9 @@ class _Job:
     """One window adjustment: its inputs, and :func:`solve_window` run here or in the worker process."""
 
     def __init__(self, window: list[int], fixed: set[int], poses: dict, keyframe: Keyframe, args: tuple,
-                 kwargs: dict):
+                 kwargs: dict, anchors: tuple[int, ...] = ()):
         self.window, self.fixed, self.poses, self.keyframe = window, fixed, poses, keyframe
+        self.anchors = anchors  # held old keyframes that joined the window (not revised)
         self.args, self.kwargs = args, kwargs
         self.solution: tuple = (None, False)
         self.ms = 0.0
@@ -130,7 +156,8 @@ class WindowBackend:
         # keyframe -> (its reference, front-end T_ref_cam, solved by two-view geometry)
         self.steps: dict[int, tuple[int, np.ndarray, bool]] = {}
         self.stats = {"solves": 0, "failures": 0, "rejected": 0, "skipped": 0, "revisions": 0, "tracks_ended": 0,
-                      "track_resets": 0, "depth_rescales": 0, "unscored_births": 0}
+                      "track_resets": 0, "depth_rescales": 0, "unscored_births": 0, "anchored_windows": 0,
+                      "anchor_links": 0, "anchor_tries": 0}
         self._ms: list[float] = []
         self._points: list[int] = []
         self._factors: list[int] = []
@@ -141,6 +168,12 @@ class WindowBackend:
         self._worker_rss_mb: float | None = None
         # the depth rescale must reach the newest keyframe before the next frame is solved: blocking
         self.concurrent = bool(config.concurrent and not config.rescale_depth)  # as planned (run.json)
+        # revisit anchors (backend.anchors > 0): old keyframes, the window's grey images, the path travelled
+        self.archive = AnchorArchive(config.anchor_keep) if config.anchors > 0 else None
+        self._gray: dict[int, np.ndarray] = {}
+        self._path: dict[int, float] = {}
+        self._travelled = 0.0
+        self._flow = None
         self._concurrent = self.concurrent  # false once the worker is lost
 
     # -- the Backend protocol ------------------------------------------------------------------------
@@ -194,6 +227,7 @@ class WindowBackend:
             "name": self.name, "window": c.window, "fixed": c.fixed,
             "concurrent": self.concurrent,
             "huber_px": c.huber_px, "max_iterations": c.max_iterations, "every": c.every,
+            "anchors": c.anchors,
             "max_tracks": c.max_tracks, "cell_px": c.cell_px, "track_texture_px": c.track_texture_px,
             "track_fb_px": c.track_fb_px, "track_epi_px": c.track_epi_px, "outlier_px": c.outlier_px,
             **self.stats,
@@ -215,6 +249,13 @@ class WindowBackend:
         self.keyframes = [k]
 
     def _trim(self, window: list[int]) -> None:
+        if self.archive is not None:
+            for k in [k for k in self.keyframes if k not in window]:
+                self._archive(k)
+            for k in [k for k in self._gray if k not in window]:  # keyframes lost in a track reset
+                del self._gray[k]
+            for k in [k for k in self._path if k not in window]:
+                del self._path[k]
         self.keyframes = list(window)
         for k in [k for k in self.poses if k not in window]:
             del self.poses[k]
@@ -253,6 +294,8 @@ class WindowBackend:
             cand_world = np.asarray(cand_world, dtype=np.float64) @ moved[:3, :3].T + moved[:3, 3]
         self.steps[k] = (int(result.ref_index), np.array(result.T_ref_cam, dtype=np.float64),
                          result.branch == Branch.TWO_VIEW)
+        if self.archive is not None:
+            self._remember(k, keyframe, int(result.ref_index))
         score = None
         if self.cfg.track_texture_px > 0 and cand_cur.shape[0]:
             if view.image is None:
@@ -273,15 +316,20 @@ class WindowBackend:
         c = self.cfg
         fixed = set(window[:n_fixed])
         poses = {j: self.poses[j] for j in window}
+        anchors = self._anchor(k) if self.archive is not None else []
+        for a in anchors:
+            poses[a] = self.archive.items[a].T_world_cam
+            fixed.add(a)
         # copies (pickled for the worker later), observations in window order: the order the
         # factors enter the graph in (a plain copy of tracks.obs changes the poses in the 9th digit)
-        seen = {t for j in window for t in self.tracks.obs.get(j, (np.zeros(0, np.int64),))[0].tolist()}
-        args = (self.K, poses, fixed, {j: self.tracks.obs[j] for j in window if j in self.tracks.obs},
+        order = anchors + window
+        seen = {t for j in order for t in self.tracks.obs.get(j, (np.zeros(0, np.int64),))[0].tolist()}
+        args = (self.K, poses, fixed, {j: self.tracks.obs[j] for j in order if j in self.tracks.obs},
                 {t: X for t, X in self.tracks.landmarks.items() if t in seen})
         kwargs = dict(huber_px=c.huber_px, max_iterations=c.max_iterations, min_points=c.min_points,
                       steps=self._step_factors() if c.step_factors else None,
                       step_rot_sigma=np.radians(c.step_rot_deg), step_trans_sigma=c.step_trans)
-        job = _Job(window, fixed, poses, keyframe, args, kwargs)
+        job = _Job(window, fixed, poses, keyframe, args, kwargs, tuple(anchors))
         if self._concurrent:
             try:
                 job.submit(self._worker())
@@ -291,6 +339,70 @@ class WindowBackend:
                 self._worker_lost(window[-1], exc)
         job.run()
         return self._conclude(job)
+
+    # -- revisit anchors ----------------------------------------------------------------------------
+    def _remember(self, k: int, keyframe: Keyframe, ref: int) -> None:
+        """Keep keyframe ``k``'s grey image and the path travelled up to it (for the archive)."""
+        import cv2
+
+        img = np.asarray(keyframe.image)
+        self._gray[k] = np.ascontiguousarray(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img)
+        if ref in self.poses:
+            self._travelled += float(np.linalg.norm(self.poses[k][:3, 3] - self.poses[ref][:3, 3]))
+        self._path[k] = self._travelled
+
+    def _archive(self, k: int) -> None:
+        """Keyframe ``k`` leaves the window: archive it with the adjusted points it observed."""
+        gray, path = self._gray.pop(k, None), self._path.pop(k, None)
+        if gray is None or path is None or k not in self.poses:
+            return
+        ids, uv = self.tracks.obs.get(k, (np.zeros(0, np.int64), np.zeros((0, 2))))
+        has = np.array([t in self.tracks.landmarks for t in ids.tolist()], dtype=bool)
+        X = np.stack([self.tracks.landmarks[t] for t in ids[has].tolist()]) if has.any() else np.zeros((0, 3))
+        self.archive.add(Archived(k, gray, np.array(self.poses[k]), np.array(uv[has]), X, path))
+
+    def _anchor(self, k: int) -> list[int]:
+        """Old keyframes the newest keyframe ``k`` revisits, linked into it as new tracks (their ids
+        observed in the anchor and in ``k``); at most ``backend.anchors``."""
+        c = self.cfg
+        if k not in self._gray or k not in self._path or not len(self.archive):
+            return []
+        cands = revisit_candidates(self.archive, self.poses[k], self._path[k], self.K, self.size_hw,
+                                   c.anchor_max_angle_deg, c.anchor_revisit_ratio, c.anchor_min_links,
+                                   c.anchor_max_parallax_px)
+        if not cands:
+            return []
+        if self._flow is None:
+            from trianflow_vo.flow.dis import DisFlow
+
+            self._flow = DisFlow("medium")
+        out = []
+        for a, _ in cands[:c.anchors]:
+            item = self.archive.items[a]
+            self.stats["anchor_tries"] += 1
+            T_new_old = invert_T(self.poses[k]) @ item.T_world_cam
+            ids_k, uv_k = self.tracks.obs.get(k, (np.zeros(0, np.int64), np.zeros((0, 2))))
+            has = np.array([t in self.tracks.landmarks for t in ids_k.tolist()], dtype=bool)
+            if has.sum() < c.anchor_min_links:
+                continue
+            X_k = np.stack([self.tracks.landmarks[t] for t in ids_k[has].tolist()])
+            z_k = ((X_k - self.poses[k][:3, 3]) @ self.poses[k][:3, :3])[:, 2]
+            # the old image seen from the newest keyframe (through its points and the relative pose);
+            # the flow from it then only has to find what the poses got wrong
+            bw0 = predicted_flow(self.K, invert_T(T_new_old), uv_k[has], z_k, self.size_hw)
+            warped = warp_to_new(item.gray, bw0)
+            r_fw, r_bw = self._flow.flow_pair(warped, self._gray[k])
+            uv_pred, _ = project(self.K, self.poses[k], item.X_world)
+            start = invert_flow_at(bw0, item.uv, uv_pred)  # where the old pixels lie in the warped image
+            uv_new, ok = link_points(r_fw, r_bw, item.uv, uv_pred, c.track_fb_px, c.track_epi_px, c.anchor_gate_px,
+                                     seed=k, uv_start=start)
+            sel = _one_per_cell(uv_new, ok, c.cell_px, self.size_hw[1])
+            if sel.size < c.anchor_min_links:
+                continue
+            self.tracks.attach(a, item.uv[sel], k, uv_new[sel], item.X_world[sel])
+            self.stats["anchor_links"] += int(sel.size)
+            out.append(a)
+        return out
 
     def _worker(self):
         """The worker process's pool (started on first use)."""
@@ -359,6 +471,8 @@ class WindowBackend:
         self.tracks.end(np.asarray(bad, dtype=np.int64))
         self.stats["tracks_ended"] += len(bad)
         revised = {k: T for k, T in sol.poses.items() if k not in fixed}
+        if job.anchors:
+            self.stats["anchored_windows"] += 1
         self.poses.update(revised)
         self.stats["revisions"] += 1
         scale = self._depth_scale(job.keyframe, sol.poses[newest], good) if c.rescale_depth else None

@@ -220,6 +220,38 @@ class TrackTable:
         self.obs[kf_new] = (self.ids.copy(), self.pts.copy())
         return int(pick.size)
 
+    def attach(self, kf_old: int, uv_old: np.ndarray, kf_new: int, uv_new: np.ndarray,
+               X_world: np.ndarray) -> np.ndarray:
+        """New tracks linking an older keyframe (e.g. a revisit anchor, no longer in the table) to
+        the newest one: each observed at ``uv_old`` in ``kf_old`` and ``uv_new`` in ``kf_new``,
+        with the landmark ``X_world``. They are not followed into later keyframes (they do not
+        count against ``max_tracks``); when ``kf_old``'s observations are forgotten they drop out
+        of the adjustments.
+
+        Args:
+            kf_old: the older keyframe; kf_new: the newest keyframe (the table's).
+            uv_old, uv_new: ``(M, 2)`` pixels; X_world: ``(M, 3)`` landmarks.
+
+        Returns:
+            ``(M,)`` the new track ids.
+        """
+        if kf_new != self.newest:
+            raise ValueError(f"tracks are in keyframe {self.newest}, not {kf_new}")
+        uv_old = np.asarray(uv_old, dtype=np.float64).reshape(-1, 2)
+        uv_new = np.asarray(uv_new, dtype=np.float64).reshape(-1, 2)
+        X_world = np.asarray(X_world, dtype=np.float64).reshape(-1, 3)
+        if not uv_old.shape[0] == uv_new.shape[0] == X_world.shape[0]:
+            raise ValueError(f"uv_old, uv_new and X_world must have one row per track, got {uv_old.shape[0]}, "
+                             f"{uv_new.shape[0]}, {X_world.shape[0]}")
+        new_ids = np.arange(self._next_id, self._next_id + uv_old.shape[0], dtype=np.int64)
+        self._next_id += new_ids.size
+        for tid, X in zip(new_ids.tolist(), X_world):
+            self.landmarks[tid] = X.copy()
+        for kf, uv in ((kf_old, uv_old), (kf_new, uv_new)):
+            ids, pts = self.obs.get(kf, (np.zeros(0, np.int64), np.zeros((0, 2))))
+            self.obs[kf] = (np.concatenate([ids, new_ids]), np.concatenate([pts, uv]))
+        return new_ids
+
     # -- what the bundle adjustment says ------------------------------------------------------------
     def end(self, track_ids: np.ndarray) -> None:
         """End these tracks everywhere (outliers): observations, landmark and live entry."""
