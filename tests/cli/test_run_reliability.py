@@ -210,14 +210,14 @@ def test_rerun_problems_leave_no_default_folder(sample_seq, tmp_path, monkeypatc
 
 
 def test_file_size_limit_keeps_whole_lines_and_names_the_file(tmp_path):
-    """A real short write: RLIMIT_FSIZE lets poses.txt grow to 12000 bytes (a whole number of lines and a part);
-    the other files (config.yaml with its comments, about 9.2 kB, and run.json, about 5 kB) stay under it. The shipped
-    sample is too short for that (48 frames, about 9.5 kB of poses), so the run is a rendered 90-frame clip."""
+    """A real short write: RLIMIT_FSIZE lets poses.txt grow to 16000 bytes (a whole number of lines and a part);
+    the other files (config.yaml with its comments, about 12.7 kB, and run.json, about 5.5 kB) stay under it. The
+    shipped sample is too short for that (48 frames, about 9.5 kB of poses), so the run is a rendered 140-frame clip."""
     resource = pytest.importorskip("resource")
     seq = tmp_path / "seq"
-    make_sequence("urban_turn", seq, n_frames=90, seed=2, size=(128, 384))  # a small run.json
+    make_sequence("urban_turn", seq, n_frames=140, seed=2, size=(128, 384))  # a small run.json
     out = tmp_path / "out"
-    limit = 12000
+    limit = 16000
 
     def limit_files():
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # EFBIG instead of being killed
@@ -231,7 +231,7 @@ def test_file_size_limit_keeps_whole_lines_and_names_the_file(tmp_path):
     assert err == [f"Error: {out / 'poses.txt'}: File too large"], p.stderr
     poses = lines(out / "poses.txt")
     raw = (out / "poses.txt").read_bytes()
-    assert len(raw) <= limit and raw.endswith(b"\n") and 30 < len(poses) < 90  # whole lines up to the limit
+    assert len(raw) <= limit and raw.endswith(b"\n") and 30 < len(poses) < 140  # whole lines up to the limit
     assert all(len(x.split()) == 12 for x in poses)
     assert len(lines(out / "frames.txt")) == len(poses) == len(lines(out / "frames.tsv")) - 1
     doc = status(out)
