@@ -59,7 +59,7 @@ from trianflow_vo.backend import PoseRevision
 from trianflow_vo.ba.anchors import (AnchorArchive, Archived, invert_flow_at, link_points, predicted_flow,
                                      revisit_candidates, warp_to_new)
 from trianflow_vo.ba.graph import project
-from trianflow_vo.ba.tracks import TrackTable, texture_score
+from trianflow_vo.ba.tracks import TrackTable, grid_cell, texture_score
 from trianflow_vo.ba.worker import init_worker, solve_timed, warm_up
 from trianflow_vo.config import BackendConfig
 from trianflow_vo.frame import Branch, FrameResult
@@ -91,9 +91,7 @@ def _one_per_cell(uv: np.ndarray, ok: np.ndarray, cell_px: int, width: int) -> n
     idx = np.flatnonzero(ok)
     if idx.size == 0:
         return idx
-    n_cols = (width + cell_px - 1) // cell_px
-    cell = (uv[idx, 1] // cell_px).astype(np.int64) * n_cols + (uv[idx, 0] // cell_px).astype(np.int64)
-    _, first = np.unique(cell, return_index=True)
+    _, first = np.unique(grid_cell(uv[idx], cell_px, width), return_index=True)
     return idx[np.sort(first)]
 
 
@@ -381,6 +379,8 @@ class WindowBackend:
             item = self.archive.items[a]
             self.stats["anchor_tries"] += 1
             T_new_old = invert_T(self.poses[k]) @ item.T_world_cam
+            # the newest keyframe's points, with the links of an anchor taken before this one (they
+            # predict the flow back to this old keyframe)
             ids_k, uv_k = self.tracks.obs.get(k, (np.zeros(0, np.int64), np.zeros((0, 2))))
             has = np.array([t in self.tracks.landmarks for t in ids_k.tolist()], dtype=bool)
             if has.sum() < c.anchor_min_links:

@@ -94,6 +94,13 @@ def texture_score(image: np.ndarray, pts: np.ndarray, block_px: int) -> np.ndarr
     return score[yi, xi].astype(np.float64)
 
 
+def grid_cell(pts: np.ndarray, cell_px: int, width: int) -> np.ndarray:
+    """``(N,)`` int64 index of the ``cell_px`` grid cell of each pixel ``pts`` ``(N, 2)`` of an image
+    ``width`` pixels wide (row-major)."""
+    n_cols = (int(width) + cell_px - 1) // cell_px
+    return (pts[:, 1] // cell_px).astype(np.int64) * n_cols + (pts[:, 0] // cell_px).astype(np.int64)
+
+
 @dataclass(frozen=True)
 class TrackUpdate:
     """What one keyframe step did to the tracks (counts)."""
@@ -192,9 +199,8 @@ class TrackTable:
         ok = ((cand_new[:, 0] >= m) & (cand_new[:, 0] <= w - 1 - m) & (cand_new[:, 1] >= m)
               & (cand_new[:, 1] <= h - 1 - m) & np.isfinite(cand_world).all(axis=1))
         idx = np.flatnonzero(ok)
-        n_cols = (w + c - 1) // c
-        cell = (cand_new[idx, 1] // c).astype(np.int64) * n_cols + (cand_new[idx, 0] // c).astype(np.int64)
-        taken = set(((self.pts[:, 1] // c).astype(np.int64) * n_cols + (self.pts[:, 0] // c).astype(np.int64)).tolist())
+        cell = grid_cell(cand_new[idx], c, w)
+        taken = set(grid_cell(self.pts, c, w).tolist())
         free = np.array([cl not in taken for cl in cell.tolist()], dtype=bool)
         idx, cell = idx[free], cell[free]
         if cand_score is None:
