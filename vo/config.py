@@ -349,7 +349,7 @@ class BackendConfig(_Section):
                                  "rejected", range=_Range(0.0, lo_open=True))
     max_rotation_deg: float = _opt(3.0, "an adjustment rotating a keyframe by more than this (degrees) is rejected",
                                    range=_Range(0.0, lo_open=True))
-    anchors: int = _opt(0, "old keyframes (out of the window) that see what the newest keyframe sees may join a "
+    anchors: int = _opt(2, "old keyframes (out of the window) that see what the newest keyframe sees may join a "
                            "window as held poses, their points linked into the newest keyframe through a dense "
                            "flow; at most this many per window; 0 = off", range=_Range(0, 10))
     anchor_keep: int = _opt(48, "old keyframes kept as possible anchors (their images at working resolution; when "
@@ -364,6 +364,14 @@ class BackendConfig(_Section):
     anchor_max_parallax_px: float = _opt(100.0, "an old keyframe joins only when its points, turned to the newest "
                                                "keyframe's orientation, are this near (median, pixels) to where "
                                                "they project: what the flow can find", range=_Range(0.0, lo_open=True))
+    anchor_max_zoom: float = _opt(1.25, "an old keyframe joins only when its points' depths in the two views "
+                                        "differ by at most this factor (median; the flow does not link a view "
+                                        "much nearer or farther: on KITTI no try above 2 linked)",
+                                  range=_Range(1.0))
+    anchor_max_shared: int = _opt(40, "an old keyframe with at least this many of its points still tracked into "
+                                      "the newest keyframe is not tried: the window's tracks already link the "
+                                      "two (on KITTI every try was such a keyframe, and none changed the poses)",
+                                  range=_Range(1))
     anchor_gate_px: float = _opt(20.0, "a linked pixel farther than this from where the current pose projects "
                                        "the anchor's point is dropped (pixels)", range=_Range(0.0, lo_open=True))
 

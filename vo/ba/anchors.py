@@ -11,15 +11,18 @@ into the newest keyframe through a dense flow between the two images:
 1. :func:`revisit_candidates`: an archived keyframe qualifies when it looks the same
    way (optical axes within ``max_angle_deg``), enough of its points project into the
    newest keyframe, their parallax (rotation removed) is small enough for a flow to
-   find, and, with ``max_revisit_ratio`` < 1, when the camera came *back* to it (its
+   find, their depths in the two views differ by at most ``max_zoom`` (a much nearer or
+   farther view is not linked by the flow), fewer than ``max_shared`` of its points are
+   still tracked into the newest keyframe (else the window's own tracks link the two
+   already), and, with ``max_revisit_ratio`` < 1, when the camera came *back* to it (its
    centre nearer than that ratio x the path travelled since: a straight drive never
    qualifies). With the ratio at 1 any old keyframe in view qualifies: a long link past
    the window along the path;
 2. the old image is warped into the newest keyframe's view by the flow the newest
    keyframe's points and the relative pose predict (:func:`predicted_flow`,
-   :func:`warp_to_new`), a dense flow finds what the poses got wrong, and
-   :func:`link_points` keeps a link when that flow is forward-backward consistent,
-   the pair fits one fundamental matrix (RANSAC) and the pixel lies within
+   :func:`warp_to_new`), a dense flow finds what the poses got wrong
+   (:func:`follow_flow`: forward-backward consistent), and :func:`link_points` keeps a
+   link when the pair fits one fundamental matrix (RANSAC) and the pixel lies within
    ``gate_px`` of where the current pose projects the point (the drift an anchor may
    correct is bounded).
 
@@ -52,6 +55,7 @@ class Archived:
         uv: ``(N, 2)`` pixels of the points it observed.
         X_world: ``(N, 3)`` those points, as last adjusted.
         path: distance travelled from the first keyframe to this one (trajectory units).
+        track_ids: ``(N,)`` int64 the points' track ids (None: unknown).
     """
 
     index: int
@@ -60,6 +64,7 @@ class Archived:
     uv: np.ndarray
     X_world: np.ndarray
     path: float
+    track_ids: np.ndarray | None = None
 
 
 class AnchorArchive:
@@ -106,7 +111,9 @@ def apply_homography(H: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 def revisit_candidates(archive: AnchorArchive, T_world_cam: np.ndarray, path: float, K: np.ndarray,
                        size_hw: tuple[int, int], max_angle_deg: float, max_revisit_ratio: float,
-                       min_points: int, max_parallax_px: float = np.inf) -> list[tuple[int, float]]:
+                       min_points: int, max_parallax_px: float = np.inf,
+                       max_zoom: float = np.inf, live_ids: np.ndarray | None = None,
+                       max_shared: int | None = None) -> list[tuple[int, float]]:
     """Archived keyframes the camera at ``T_world_cam`` has come back to, best first.
 
     Args:
@@ -120,6 +127,12 @@ def revisit_candidates(archive: AnchorArchive, T_world_cam: np.ndarray, path: fl
         min_points: fewest of the archived keyframe's points that must project into the image.
         max_parallax_px: largest median distance between the points' projections and their old
             pixels turned by :func:`rotation_homography` (what the flow must find; pixels).
+        max_zoom: largest ratio (either way) of the points' depths in the archived and the newest
+            view (median): a patch seen this much nearer or farther is not found by the flow, even
+            after the warp.
+        live_ids: ``(M,)`` track ids observed in the newest keyframe; max_shared: an archived
+            keyframe with at least this many of its points' tracks among them is skipped (the
+            window's own tracks already link it to the newest keyframe; None: no limit).
 
     Returns:
         ``[(index, median parallax px), ...]``, the oldest first (the longest link).
@@ -127,6 +140,12 @@ def revisit_candidates(archive: AnchorArchive, T_world_cam: np.ndarray, path: fl
     T = np.asarray(T_world_cam, dtype=np.float64)
     h, w = size_hw
     cos_max = np.cos(np.radians(max_angle_deg))
+    live = None  # live[track id]: observed in the newest keyframe
+    if max_shared is not None and live_ids is not None:
+        ids = np.asarray(live_ids, dtype=np.int64).reshape(-1)
+        ids = ids[ids >= 0]
+        live = np.zeros(int(ids.max()) + 1 if ids.size else 0, dtype=bool)
+        live[ids] = True
     out = []
     for k, a in archive.items.items():
         travelled = path - a.path
@@ -138,10 +157,21 @@ def revisit_candidates(archive: AnchorArchive, T_world_cam: np.ndarray, path: fl
             continue
         if a.X_world.shape[0] < min_points:
             continue
+        if live is not None and a.track_ids is not None:
+            ids = a.track_ids[(a.track_ids >= 0) & (a.track_ids < live.size)]
+            if int(live[ids].sum()) >= max_shared:
+                continue
         uv, front = project(K, T, a.X_world)
         inside = front & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
         if int(inside.sum()) < min_points:
             continue
+        if np.isfinite(max_zoom):
+            X = a.X_world[inside]
+            z_old = ((X - a.T_world_cam[:3, 3]) @ a.T_world_cam[:3, :3])[:, 2]
+            z_new = ((X - T[:3, 3]) @ T[:3, :3])[:, 2]
+            pos = (z_old > 0) & (z_new > 0)
+            if not pos.any() or abs(float(np.median(np.log(z_old[pos] / z_new[pos])))) > np.log(max_zoom):
+                continue
         turned = apply_homography(rotation_homography(K, a.T_world_cam, T), a.uv[inside])
         parallax = float(np.median(np.linalg.norm(uv[inside] - turned, axis=1)))
         if parallax <= max_parallax_px:
@@ -151,17 +181,19 @@ def revisit_candidates(archive: AnchorArchive, T_world_cam: np.ndarray, path: fl
 
 
 def predicted_flow(K: np.ndarray, T_new_old: np.ndarray, uv: np.ndarray, depth: np.ndarray,
-                   size_hw: tuple[int, int], cell_px: int = 32) -> np.ndarray:
+                   size_hw: tuple[int, int], cell_px: int = 32, step: int = 4) -> np.ndarray:
     """Dense flow old -> new that the old view's points and the relative pose predict
     (a start for the flow between two distant views).
 
     The points' depths are spread over the old image (:func:`dense_inverse_depth` on a
-    ``cell_px`` grid), every pixel is moved into the new camera and projected.
+    ``cell_px`` grid); the flow is computed every ``step`` pixels (each pixel moved into
+    the new camera and projected) and interpolated bilinearly in between (a smooth
+    field; exact to a few 1e-3 px for a plane, a fraction of a pixel where the depth jumps).
 
     Args:
         K: ``(3, 3)`` intrinsics; T_new_old: ``(4, 4)`` old camera -> new camera.
         uv: ``(N, 2)`` pixels of the old view's points; depth: ``(N,)`` their depths (> 0).
-        size_hw: ``(h, w)``.
+        size_hw: ``(h, w)``; cell_px: the depth grid's cell; step: the flow's sampling step (pixels).
 
     Returns:
         ``(h, w, 2)`` float32 flow (0 where the predicted point is behind the new camera).
@@ -169,26 +201,33 @@ def predicted_flow(K: np.ndarray, T_new_old: np.ndarray, uv: np.ndarray, depth: 
     from trianflow_vo.geometry.rolling_shutter import dense_inverse_depth
 
     h, w = size_hw
+    step = max(1, int(step))
+    hc, wc = -(-(h - 1) // step) + 1, -(-(w - 1) // step) + 1  # samples at 0, step, ... up to >= the last pixel
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     depth = np.asarray(depth, dtype=np.float64).reshape(-1)
     good = (depth > 0) & np.isfinite(depth) & np.isfinite(uv).all(axis=1)
-    sparse = np.zeros((h, w))
-    xi = np.clip(np.rint(uv[good, 0]).astype(np.int64), 0, w - 1)
-    yi = np.clip(np.rint(uv[good, 1]).astype(np.int64), 0, h - 1)
+    sparse = np.zeros((hc, wc))
+    xi = np.clip(np.floor(uv[good, 0] / step).astype(np.int64), 0, wc - 1)
+    yi = np.clip(np.floor(uv[good, 1] / step).astype(np.int64), 0, hc - 1)
     sparse[yi, xi] = depth[good]
-    inv = dense_inverse_depth(sparse, cell_px)
-    # the new pixel of old pixel (u, v) with inverse depth q: K (R K^-1 [u, v, 1] + q t), per channel
+    inv = dense_inverse_depth(sparse, max(1, cell_px // step))
+    # the new pixel of old pixel (u, v) with inverse depth q: K (R K^-1 [u, v, 1] + q t)
     M = K @ T_new_old[:3, :3] @ np.linalg.inv(K)
     b = K @ T_new_old[:3, 3]
-    u = np.arange(w, dtype=np.float64)[None, :]
-    v = np.arange(h, dtype=np.float64)[:, None]
+    u = (np.arange(wc, dtype=np.float64) * step)[None, :]
+    v = (np.arange(hc, dtype=np.float64) * step)[:, None]
     x, y, z = (M[i, 0] * u + M[i, 1] * v + M[i, 2] + inv * b[i] for i in range(3))
     ok = z > 1e-9
     zs = np.where(ok, z, 1.0)
-    flow = np.zeros((h, w, 2), dtype=np.float32)
-    flow[..., 0] = np.where(ok, x / zs - u, 0.0)
-    flow[..., 1] = np.where(ok, y / zs - v, 0.0)
-    return flow
+    coarse = np.zeros((hc, wc, 2), dtype=np.float32)
+    coarse[..., 0] = np.where(ok, x / zs - u, 0.0)
+    coarse[..., 1] = np.where(ok, y / zs - v, 0.0)
+    if step == 1:
+        return coarse
+    mx = np.broadcast_to(np.arange(w, dtype=np.float32) / step, (h, w))
+    my = np.broadcast_to(np.arange(h, dtype=np.float32)[:, None] / step, (h, w))
+    return cv2.remap(coarse, np.ascontiguousarray(mx), np.ascontiguousarray(my), cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE)
 
 
 def warp_to_new(gray_old: np.ndarray, bw: np.ndarray) -> np.ndarray:
@@ -222,47 +261,65 @@ def invert_flow_at(bw: np.ndarray, uv_old: np.ndarray, start: np.ndarray, iterat
     return y
 
 
-def link_points(fw: np.ndarray, bw: np.ndarray, uv_old: np.ndarray, uv_pred: np.ndarray, fb_px: float,
-                ransac_px: float, gate_px: float, seed: int = 0,
-                uv_start: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Follow an archived keyframe's pixels into the newest keyframe through the flow.
+def follow_flow(fw: np.ndarray, bw: np.ndarray, uv_from: np.ndarray, fb_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels ``uv_from`` followed through a dense flow, kept when the flow back lands within
+    ``fb_px`` of where they started.
+
+    A dense flow (DIS), not sparse Lucas-Kanade at the points: the points are flow-track
+    pixels, many on edges or weak texture, where a window on its own slides (on 7-Scenes,
+    Lucas-Kanade kept 3 of the 95 pixels DIS kept at one try, its pixels moved 25-100 px).
 
     Args:
-        fw, bw: ``(h, w, 2)`` flow old -> new and new -> old (the old image possibly warped first,
-            e.g. by :func:`rotation_homography`).
+        fw, bw: ``(h, w, 2)`` flow from the image of ``uv_from`` to the other and back.
+        uv_from: ``(N, 2)`` pixels (non-finite rows are not followed).
+        fb_px: largest forward-backward distance (pixels).
+
+    Returns:
+        ``(uv_to (N, 2), valid (N,) bool)``.
+    """
+    uv_from = np.asarray(uv_from, dtype=np.float64).reshape(-1, 2)
+    h, w = fw.shape[:2]
+    finite = np.isfinite(uv_from).all(axis=1)
+    f, inside = sample_bilinear(fw, np.where(finite[:, None], uv_from, -1.0))
+    uv_to = np.where(finite[:, None], uv_from + f, np.nan)
+    with np.errstate(invalid="ignore"):
+        inside &= (uv_to[:, 0] >= 0) & (uv_to[:, 0] <= w - 1) & (uv_to[:, 1] >= 0) & (uv_to[:, 1] <= h - 1)
+    b, _ = sample_bilinear(bw, np.where(inside[:, None], uv_to, 0.0))
+    return uv_to, inside & (np.linalg.norm(f + b, axis=1) < fb_px)
+
+
+def link_points(uv_old: np.ndarray, uv_new: np.ndarray, followed: np.ndarray, uv_pred: np.ndarray,
+                ransac_px: float, gate_px: float, seed: int = 0) -> np.ndarray:
+    """Which followed pixels of an archived keyframe become links into the newest keyframe.
+
+    Args:
         uv_old: ``(N, 2)`` pixels in the old keyframe.
+        uv_new: ``(N, 2)`` where they were followed to in the newest keyframe (:func:`follow_flow`).
+        followed: ``(N,)`` bool, the follow succeeded.
         uv_pred: ``(N, 2)`` where the newest keyframe's current pose projects the same points
             (``inf`` behind it).
-        fb_px: largest forward-backward distance (pixels).
         ransac_px: RANSAC threshold of the fundamental matrix fit (pixels).
         gate_px: largest distance between the linked pixel and ``uv_pred`` (pixels).
         seed: OpenCV's RNG seed for the RANSAC (a run is reproducible).
-        uv_start: ``(N, 2)`` where ``uv_old`` lie in the image the flow starts from (the warped
-            old image); None: ``uv_old``.
 
     Returns:
-        ``(uv_new (N, 2), valid (N,) bool)``.
+        ``(N,)`` bool: within the gate and an inlier of one fundamental matrix (none when fewer
+        than 8 pass the gate).
     """
     uv_old = np.asarray(uv_old, dtype=np.float64).reshape(-1, 2)
+    uv_new = np.asarray(uv_new, dtype=np.float64).reshape(-1, 2)
     n = uv_old.shape[0]
-    h, w = fw.shape[:2]
-    start = uv_old if uv_start is None else np.asarray(uv_start, dtype=np.float64).reshape(-1, 2)
-    with np.errstate(invalid="ignore"):
-        f, inside_old = sample_bilinear(fw, np.where(np.isfinite(start), start, -1.0))
-    uv_new = start + f
-    inside = inside_old & (uv_new[:, 0] >= 0) & (uv_new[:, 0] <= w - 1) & (uv_new[:, 1] >= 0) & (uv_new[:, 1] <= h - 1)
-    b, _ = sample_bilinear(bw, np.where(inside[:, None], uv_new, 0.0))
-    ok = inside & (np.linalg.norm(f + b, axis=1) < fb_px)
+    ok = np.asarray(followed, dtype=bool).copy()
     with np.errstate(invalid="ignore"):
         ok &= np.linalg.norm(uv_new - uv_pred, axis=1) < gate_px
     idx = np.flatnonzero(ok)
+    valid = np.zeros(n, dtype=bool)
     if idx.size < 8:
-        return uv_new, np.zeros(n, dtype=bool)
+        return valid
     cv2.setRNGSeed(int(seed))
     _, mask = cv2.findFundamentalMat(np.ascontiguousarray(uv_old[idx], dtype=np.float64),
                                      np.ascontiguousarray(uv_new[idx], dtype=np.float64),
                                      cv2.FM_RANSAC, float(ransac_px), 0.999)
-    valid = np.zeros(n, dtype=bool)
     if mask is not None:
         valid[idx[mask.ravel().astype(bool)]] = True
-    return uv_new, valid
+    return valid

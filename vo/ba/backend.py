@@ -27,11 +27,13 @@ keyframe. The depth rescale needs the blocking order: with it, windows are
 adjusted here (``concurrent`` false in ``run.json``). If the worker process dies,
 the run says so and adjusts in its own process from then on.
 
-With ``backend.anchors`` > 0, keyframes that leave the window go to a small archive
-(:mod:`~trianflow_vo.ba.anchors`: image, adjusted pose and points). When the newest keyframe
-of a window sees what an archived keyframe saw (with ``anchor_revisit_ratio`` < 1 only when
-the camera came back to it), the oldest such keyframes join the window as held poses and
-their points are linked into the newest keyframe: the old image is warped to the new view
+With ``backend.anchors`` > 0 (the default), keyframes that leave the window go to a small archive
+(:mod:`~trianflow_vo.ba.anchors`: image, adjusted pose, points and their track ids). When the
+newest keyframe of a window sees what an archived keyframe saw (with ``anchor_revisit_ratio`` < 1
+only when the camera came back to it), from a view no more than ``anchor_max_zoom`` nearer or
+farther, and fewer than ``anchor_max_shared`` of its points are still tracked into the newest
+keyframe (else the window's tracks already link the two), the oldest such keyframes join the
+window as held poses and their points are linked into the newest keyframe: the old image is warped to the new view
 by the flow the newest keyframe's points and the relative pose predict, DIS finds what is
 left, and links that are forward-backward consistent, fit one fundamental matrix and lie
 within ``anchor_gate_px`` of their predicted pixel (one per ``cell_px`` cell) become tracks
@@ -56,8 +58,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from trianflow_vo.backend import PoseRevision
-from trianflow_vo.ba.anchors import (AnchorArchive, Archived, invert_flow_at, link_points, predicted_flow,
-                                     revisit_candidates, warp_to_new)
+from trianflow_vo.ba.anchors import (AnchorArchive, Archived, follow_flow, invert_flow_at, link_points,
+                                     predicted_flow, revisit_candidates, warp_to_new)
 from trianflow_vo.ba.graph import project
 from trianflow_vo.ba.tracks import TrackTable, grid_cell, texture_score
 from trianflow_vo.ba.worker import init_worker, solve_timed, warm_up
@@ -357,7 +359,7 @@ class WindowBackend:
         ids, uv = self.tracks.obs.get(k, (np.zeros(0, np.int64), np.zeros((0, 2))))
         has = np.array([t in self.tracks.landmarks for t in ids.tolist()], dtype=bool)
         X = np.stack([self.tracks.landmarks[t] for t in ids[has].tolist()]) if has.any() else np.zeros((0, 3))
-        self.archive.add(Archived(k, gray, np.array(self.poses[k]), np.array(uv[has]), X, path))
+        self.archive.add(Archived(k, gray, np.array(self.poses[k]), np.array(uv[has]), X, path, np.array(ids[has])))
 
     def _anchor(self, k: int) -> list[int]:
         """Old keyframes the newest keyframe ``k`` revisits, linked into it as new tracks (their ids
@@ -367,13 +369,15 @@ class WindowBackend:
             return []
         cands = revisit_candidates(self.archive, self.poses[k], self._path[k], self.K, self.size_hw,
                                    c.anchor_max_angle_deg, c.anchor_revisit_ratio, c.anchor_min_links,
-                                   c.anchor_max_parallax_px)
+                                   c.anchor_max_parallax_px, c.anchor_max_zoom,
+                                   live_ids=self.tracks.obs.get(k, (np.zeros(0, np.int64),))[0],
+                                   max_shared=c.anchor_max_shared)
         if not cands:
             return []
         if self._flow is None:
             from trianflow_vo.flow.dis import DisFlow
 
-            self._flow = DisFlow("medium")
+            self._flow = DisFlow("medium")  # "fast" is 5x cheaper, but its links lost the gain on 7-Scenes
         out = []
         for a, _ in cands[:c.anchors]:
             item = self.archive.items[a]
@@ -391,11 +395,11 @@ class WindowBackend:
             # the flow from it then only has to find what the poses got wrong
             bw0 = predicted_flow(self.K, invert_T(T_new_old), uv_k[has], z_k, self.size_hw)
             warped = warp_to_new(item.gray, bw0)
-            r_fw, r_bw = self._flow.flow_pair(warped, self._gray[k])
             uv_pred, _ = project(self.K, self.poses[k], item.X_world)
             start = invert_flow_at(bw0, item.uv, uv_pred)  # where the old pixels lie in the warped image
-            uv_new, ok = link_points(r_fw, r_bw, item.uv, uv_pred, c.track_fb_px, c.track_epi_px, c.anchor_gate_px,
-                                     seed=k, uv_start=start)
+            r_fw, r_bw = self._flow.flow_pair(warped, self._gray[k])
+            uv_new, followed = follow_flow(r_fw, r_bw, start, c.track_fb_px)
+            ok = link_points(item.uv, uv_new, followed, uv_pred, c.track_epi_px, c.anchor_gate_px, seed=k)
             sel = _one_per_cell(uv_new, ok, c.cell_px, self.size_hw[1])
             if sel.size < c.anchor_min_links:
                 continue
