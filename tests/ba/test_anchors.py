@@ -4,10 +4,10 @@ import cv2
 import numpy as np
 import pytest
 
-from trianflow_vo.ba.anchors import (AnchorArchive, Archived, follow_flow, invert_flow_at, link_points,
-                                     predicted_flow, revisit_candidates, warp_to_new)
+from trianflow_vo.ba.anchors import (AnchorArchive, Archived, invert_flow_at, link_points, predicted_flow,
+                                     revisit_candidates, warp_to_new)
 from trianflow_vo.ba.graph import project
-from trianflow_vo.ba.tracks import TrackTable, sample_bilinear
+from trianflow_vo.ba.tracks import TrackTable, follow_flow, sample_bilinear
 from trianflow_vo.geometry.se3 import invert_T
 
 H, W = 120, 160
@@ -91,22 +91,27 @@ def test_links_through_a_warp_recover_a_turned_zoomed_view_and_the_gate_drops_wr
     from trianflow_vo.flow.dis import DisFlow
 
     dis = DisFlow("medium")
-    uv_new, followed = follow_flow(*dis.flow_pair(warped, new), start, fb_px=1.0)
+    uv_new, inside, fb = follow_flow(*dis.flow_pair(warped, new), start)
+    followed = inside & (fb < 1.0)
     ok = link_points(uv_old, uv_new, followed, uv_pred, ransac_px=1.0, gate_px=20.0)
     assert followed[:10].all() and not ok[:10].any()
     assert ok[10:].mean() > 0.8
     err = np.linalg.norm(uv_new[ok] - truth[ok], axis=1)
     assert np.median(err) < 0.3 and err.max() < 1.5
     # without the warp, the flow between the turned and zoomed views: few follow to the right pixel
-    raw, followed_raw = follow_flow(*dis.flow_pair(old, new), uv_old, fb_px=1.0)
-    right = followed_raw & (np.linalg.norm(raw - truth, axis=1) < 1.0)
+    raw, inside_raw, fb_raw = follow_flow(*dis.flow_pair(old, new), uv_old)
+    right = inside_raw & (fb_raw < 1.0) & (np.linalg.norm(raw - truth, axis=1) < 1.0)
     assert right.sum() < 0.3 * len(truth)
     # rows that cannot be followed (non-finite, outside, or leaving the image) are invalid, not wrong pixels
     out = np.zeros((H, W, 2), np.float32)
     out[..., 0] = 30.0
-    _, f = follow_flow(out, -out, np.array([[np.nan, 5.0], [-3.0, 5.0], [W + 2.0, 5.0], [W - 10.0, 5.0],
-                                            [10.0, 5.0]]), fb_px=1.0)
-    assert f.tolist() == [False, False, False, False, True]
+    moved, inside, fb = follow_flow(out, -out, np.array([[np.nan, 5.0], [-3.0, 5.0], [W + 2.0, 5.0],
+                                                        [W - 10.0, 5.0], [10.0, 5.0]]))
+    assert inside.tolist() == [False, False, False, False, True]
+    assert np.isinf(fb[:4]).all() and fb[4] == 0.0 and np.isnan(moved[0]).all()
+    # a margin: landing within 3 px of the border is not inside
+    _, inside_m, _ = follow_flow(out, -out, np.array([[W - 32.0, 5.0], [W - 34.0, 5.0]]), margin_px=3.0)
+    assert inside_m.tolist() == [False, True]
 
 
 def _archived(index, T, X, uv, path):

@@ -20,8 +20,10 @@ into the newest keyframe through a dense flow between the two images:
    the window along the path;
 2. the old image is warped into the newest keyframe's view by the flow the newest
    keyframe's points and the relative pose predict (:func:`predicted_flow`,
-   :func:`warp_to_new`), a dense flow finds what the poses got wrong
-   (:func:`follow_flow`: forward-backward consistent), and :func:`link_points` keeps a
+   :func:`warp_to_new`), a dense flow finds what the poses got wrong (followed by
+   :func:`~trianflow_vo.ba.tracks.follow_flow`, forward-backward consistent; a dense flow,
+   not sparse Lucas-Kanade at the points: they are flow-track pixels, many on edges or weak
+   texture, where a window alone slides), and :func:`link_points` keeps a
    link when the pair fits one fundamental matrix (RANSAC) and the pixel lies within
    ``gate_px`` of where the current pose projects the point (the drift an anchor may
    correct is bounded).
@@ -261,40 +263,14 @@ def invert_flow_at(bw: np.ndarray, uv_old: np.ndarray, start: np.ndarray, iterat
     return y
 
 
-def follow_flow(fw: np.ndarray, bw: np.ndarray, uv_from: np.ndarray, fb_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels ``uv_from`` followed through a dense flow, kept when the flow back lands within
-    ``fb_px`` of where they started.
-
-    A dense flow (DIS), not sparse Lucas-Kanade at the points: the points are flow-track
-    pixels, many on edges or weak texture, where a window on its own slides (on 7-Scenes,
-    Lucas-Kanade kept 3 of the 95 pixels DIS kept at one try, its pixels moved 25-100 px).
-
-    Args:
-        fw, bw: ``(h, w, 2)`` flow from the image of ``uv_from`` to the other and back.
-        uv_from: ``(N, 2)`` pixels (non-finite rows are not followed).
-        fb_px: largest forward-backward distance (pixels).
-
-    Returns:
-        ``(uv_to (N, 2), valid (N,) bool)``.
-    """
-    uv_from = np.asarray(uv_from, dtype=np.float64).reshape(-1, 2)
-    h, w = fw.shape[:2]
-    finite = np.isfinite(uv_from).all(axis=1)
-    f, inside = sample_bilinear(fw, np.where(finite[:, None], uv_from, -1.0))
-    uv_to = np.where(finite[:, None], uv_from + f, np.nan)
-    with np.errstate(invalid="ignore"):
-        inside &= (uv_to[:, 0] >= 0) & (uv_to[:, 0] <= w - 1) & (uv_to[:, 1] >= 0) & (uv_to[:, 1] <= h - 1)
-    b, _ = sample_bilinear(bw, np.where(inside[:, None], uv_to, 0.0))
-    return uv_to, inside & (np.linalg.norm(f + b, axis=1) < fb_px)
-
-
 def link_points(uv_old: np.ndarray, uv_new: np.ndarray, followed: np.ndarray, uv_pred: np.ndarray,
                 ransac_px: float, gate_px: float, seed: int = 0) -> np.ndarray:
     """Which followed pixels of an archived keyframe become links into the newest keyframe.
 
     Args:
         uv_old: ``(N, 2)`` pixels in the old keyframe.
-        uv_new: ``(N, 2)`` where they were followed to in the newest keyframe (:func:`follow_flow`).
+        uv_new: ``(N, 2)`` where they were followed to in the newest keyframe
+            (:func:`~trianflow_vo.ba.tracks.follow_flow`).
         followed: ``(N,)`` bool, the follow succeeded.
         uv_pred: ``(N, 2)`` where the newest keyframe's current pose projects the same points
             (``inf`` behind it).

@@ -58,10 +58,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from trianflow_vo.backend import PoseRevision
-from trianflow_vo.ba.anchors import (AnchorArchive, Archived, follow_flow, invert_flow_at, link_points,
-                                     predicted_flow, revisit_candidates, warp_to_new)
+from trianflow_vo.ba.anchors import (AnchorArchive, Archived, invert_flow_at, link_points, predicted_flow,
+                                     revisit_candidates, warp_to_new)
 from trianflow_vo.ba.graph import project
-from trianflow_vo.ba.tracks import TrackTable, grid_cell, texture_score
+from trianflow_vo.ba.tracks import TrackTable, follow_flow, grid_cell, texture_score
 from trianflow_vo.ba.worker import init_worker, solve_timed, warm_up
 from trianflow_vo.config import BackendConfig
 from trianflow_vo.frame import Branch, FrameResult
@@ -398,7 +398,8 @@ class WindowBackend:
             uv_pred, _ = project(self.K, self.poses[k], item.X_world)
             start = invert_flow_at(bw0, item.uv, uv_pred)  # where the old pixels lie in the warped image
             r_fw, r_bw = self._flow.flow_pair(warped, self._gray[k])
-            uv_new, followed = follow_flow(r_fw, r_bw, start, c.track_fb_px)
+            uv_new, inside, fb = follow_flow(r_fw, r_bw, start)
+            followed = inside & (fb < c.track_fb_px)
             ok = link_points(item.uv, uv_new, followed, uv_pred, c.track_epi_px, c.anchor_gate_px, seed=k)
             sel = _one_per_cell(uv_new, ok, c.cell_px, self.size_hw[1])
             if sel.size < c.anchor_min_links:

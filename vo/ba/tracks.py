@@ -64,6 +64,33 @@ def sample_bilinear(field: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.
     return out, inside
 
 
+def follow_flow(fw: np.ndarray, bw: np.ndarray, pts: np.ndarray,
+                margin_px: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixels followed through a dense flow, with their forward-backward distance.
+
+    Args:
+        fw, bw: ``(h, w, 2)`` flow from the image of ``pts`` to the other and back.
+        pts: ``(N, 2)`` pixels (non-finite rows are not followed).
+        margin_px: a followed pixel must land at least this far inside the other image.
+
+    Returns:
+        ``(moved (N, 2), inside (N,) bool, fb (N,))``: where each pixel lands (``nan`` for
+        non-finite rows), whether it started in the image and landed inside the margin, and
+        ``|fw(p) + bw(p + fw(p))|`` in pixels (``inf`` where not inside).
+    """
+    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+    h, w = fw.shape[:2]
+    finite = np.isfinite(pts).all(axis=1)
+    f, inside = sample_bilinear(fw, np.where(finite[:, None], pts, -1.0))
+    moved = np.where(finite[:, None], pts + f, np.nan)
+    m = margin_px
+    with np.errstate(invalid="ignore"):
+        inside &= (moved[:, 0] >= m) & (moved[:, 0] <= w - 1 - m) & (moved[:, 1] >= m) & (moved[:, 1] <= h - 1 - m)
+    b, _ = sample_bilinear(bw, np.where(inside[:, None], moved, 0.0))
+    fb = np.where(inside, np.linalg.norm(f + b, axis=1), np.inf)
+    return moved, inside, fb
+
+
 def texture_score(image: np.ndarray, pts: np.ndarray, block_px: int) -> np.ndarray:
     """How well the image pins down a small patch at each point: the smaller eigenvalue of the
     covariance of the image gradients over a ``block_px`` square (Shi-Tomasi's corner measure).
@@ -169,12 +196,8 @@ class TrackTable:
         n = self.ids.size
         left = inconsistent = epi_out = 0
         if n:
-            f, _ = sample_bilinear(fw, self.pts)
-            moved = self.pts + f
-            m = self.margin_px
-            inside = (moved[:, 0] >= m) & (moved[:, 0] <= w - 1 - m) & (moved[:, 1] >= m) & (moved[:, 1] <= h - 1 - m)
-            b, _ = sample_bilinear(bw, np.where(inside[:, None], moved, 0.0))
-            fb_ok = np.linalg.norm(f + b, axis=1) < self.fb_px
+            moved, inside, fb = follow_flow(fw, bw, self.pts, self.margin_px)
+            fb_ok = fb < self.fb_px
             epi_ok = (np.ones(n, dtype=bool) if F is None
                       else sampson_distance(F, self.pts, moved) < self.epi_px)
             keep = inside & fb_ok & epi_ok
