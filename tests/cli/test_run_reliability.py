@@ -132,16 +132,25 @@ def test_out_with_an_earlier_run_is_refused_unless_overwrite(sample_seq, tmp_pat
 # --------------------------------------------------------------------------- 2. final status on every exit
 
 
+def _default_signals() -> None:
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, signal.SIG_DFL)
+
+
 @pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
 def test_signals_close_the_run_as_interrupted(sample_seq, tmp_path, sig, code):
     out = tmp_path / "out"
-    p = cli("run", sample_seq, *SMALL, "--no-plot", "--out", out, cwd=tmp_path)
+    # the run starts with the signals' default actions: a test process launched in the background by a
+    # non-interactive shell ignores SIGINT, the child would inherit that, and the run rightly keeps a
+    # caller's SIG_IGN (it then finished all 48 frames: exit 0, not 130)
+    p = cli("run", sample_seq, *SMALL, "--no-plot", "--out", out, cwd=tmp_path, preexec_fn=_default_signals)
     deadline = time.monotonic() + 60
     # two frames complete: frames.tsv is the last of the four files a frame writes (header + 2 rows). Waiting
     # on frames.txt raced: a signal between its line and frames.tsv's takes the frame back (n = 1), as it should
     while not ((out / "frames.tsv").exists() and (out / "frames.tsv").read_text().count("\n") >= 3):
         assert p.poll() is None and time.monotonic() < deadline, p.communicate()
         time.sleep(0.02)
+    assert p.poll() is None, p.communicate()  # the premise: the run is still going
     p.send_signal(sig)
     _, err = p.communicate(timeout=60)
     assert p.returncode == code, err
