@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from trianflow_vo.camera import PinholeCamera, project, scale_intrinsics, unproject
+from trianflow_vo.camera import PinholeCamera, focal_px, project, scale_intrinsics, unproject
 
 K = np.array([[700.0, 0.0, 600.0], [0.0, 710.0, 180.0], [0.0, 0.0, 1.0]])
 
@@ -41,3 +41,12 @@ def test_bad_camera_is_refused():
     cam = PinholeCamera(K, (10, 10))
     with pytest.raises(ValueError):
         cam.K[0, 0] = 1.0
+
+
+def test_focal_px_is_the_geometric_mean_of_the_axes():
+    K2 = np.array([[400.0, 0.0, 320.0], [0.0, 900.0, 240.0], [0.0, 0.0, 1.0]])
+    assert focal_px(K2) == pytest.approx(600.0)
+    # a small angle's square footprint in pixels has the area of the true (a fx by a fy) one
+    a = 1e-3
+    assert (a * focal_px(K2)) ** 2 == pytest.approx((a * 400.0) * (a * 900.0))
+    assert focal_px(K) == pytest.approx(np.sqrt(700.0 * 710.0))

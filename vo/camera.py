@@ -75,6 +75,16 @@ def scale_intrinsics(K: np.ndarray, src_hw: tuple[int, int], dst_hw: tuple[int, 
     return out
 
 
+def focal_px(K: np.ndarray) -> float:
+    """One focal length for angles of any direction: ``sqrt(fx * fy)`` of ``K`` ``(3, 3)``.
+
+    A small angle ``a`` (radians) near the principal point spans ``a * fx`` pixels
+    horizontally and ``a * fy`` vertically; the geometric mean is the scale that turns
+    pixel distances into angles (and back) without favouring either axis.
+    """
+    return float(np.sqrt(K[0, 0] * K[1, 1]))
+
+
 def project(X_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Pixels ``(N, 2)`` of camera-frame points ``(N, 3)`` (z > 0 assumed; see :meth:`PinholeCamera.project`)."""
     X_cam = np.asarray(X_cam, dtype=np.float64)

@@ -15,7 +15,7 @@ from dataclasses import replace
 import numpy as np
 
 from trianflow_vo.backend import PoseRevision
-from trianflow_vo.camera import PinholeCamera
+from trianflow_vo.camera import PinholeCamera, focal_px
 from trianflow_vo.config import Config, resolve_scale_source
 from trianflow_vo.depth.base import DepthPrior, ReferenceDepth
 from trianflow_vo.flow.base import FlowSource
@@ -269,9 +269,8 @@ class Odometry:
         return self.front.transfer_keyframe(kf, sol, note, extra)
 
     def _parallax_deg(self, parallax_px: float) -> float:
-        """A parallax in pixels as an angle in degrees (over the mean focal length)."""
-        K = self.camera.K
-        return float(np.degrees(parallax_px / (0.5 * (K[0, 0] + K[1, 1]))))
+        """A parallax in pixels as an angle in degrees (over :func:`~trianflow_vo.camera.focal_px`)."""
+        return float(np.degrees(parallax_px / focal_px(self.camera.K)))
 
     def _solve_pairwise(self, kf: Keyframe, m: Matches, cur: Keyframe, stats: dict, tm: StageTimer):
         """The authors' policy (``scale.source`` depth): every pair scaled by the network depth of

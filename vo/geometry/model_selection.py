@@ -32,7 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from trianflow_vo.geometry.relative_pose import _perturb_pose, _signed_sampson, _tangent_basis
+from trianflow_vo.camera import focal_px
+from trianflow_vo.geometry.relative_pose import _tangent_basis, sampson_jacobian
 
 R_DATA = 4  # two image points per match
 
@@ -122,17 +123,11 @@ def direction_sigma(R: np.ndarray, t: np.ndarray, pts1: np.ndarray, pts2: np.nda
     t = np.asarray(t, dtype=np.float64)
     t = t / np.linalg.norm(t)
     Kinv = np.linalg.inv(K)
-    x1n = np.concatenate([pts1, np.ones((n, 1))], 1) @ Kinv.T
-    x2n = np.concatenate([pts2, np.ones((n, 1))], 1) @ Kinv.T
-    f = float(np.sqrt(K[0, 0] * K[1, 1]))
+    x1c = Kinv @ np.concatenate([pts1, np.ones((n, 1))], 1).T  # (3, N): one column a match
+    x2c = Kinv @ np.concatenate([pts2, np.ones((n, 1))], 1).T
+    f = focal_px(K)
     B = _tangent_basis(t)  # the parametrisation of refine_pose_sampson: its Jacobian, at the solution
-    r0 = _signed_sampson(R, t, x1n, x2n, f)
-    eps = 1e-6
-    J = np.empty((n, 5))
-    for k in range(5):
-        dx = np.zeros(5)
-        dx[k] = eps
-        J[:, k] = (_signed_sampson(*_perturb_pose(R, t, B, dx), x1n, x2n, f) - r0) / eps
+    _, J = sampson_jacobian(R, t, B, x1c, x2c, f)
     info = J.T @ J
     if n_independent is not None and n_independent < n:
         info *= n_independent / n

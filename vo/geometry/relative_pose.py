@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from trianflow_vo.camera import focal_px
 from trianflow_vo.geometry.epipolar import sampson_distance
 from trianflow_vo.geometry.essential import choose_pose_cheirality
 from trianflow_vo.geometry.fundamental import eight_point, essential_from_fundamental, fundamental_from_pose
@@ -62,14 +63,55 @@ def _ransac_8point(pts1, pts2, threshold_px, rng, prob=0.999, max_iters=2000):
     return F, best_inl
 
 
-def _signed_sampson(R, t, x1n, x2n, f):
-    # residual in pixels for normalised coordinates scaled by focal length f
+def _signed_sampson(R, t, x1c, x2c, f):
+    """Signed Sampson residuals ``(N,)`` in pixels of the pose ``(R, t)``.
+
+    ``x1c``, ``x2c``: ``(3, N)`` normalised homogeneous coordinates as columns (rows are
+    contiguous, which keeps every per-match operation a contiguous one); f: focal length.
+    """
     E = skew(t) @ R
-    Ex1 = x1n @ E.T
-    Etx2 = x2n @ E
-    num = (x2n * Ex1).sum(1)
-    den = Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2 + 1e-18
+    Ex1 = E @ x1c
+    Etx2 = E.T @ x2c
+    num = np.einsum("in,in->n", x2c, Ex1)
+    den = Ex1[0] ** 2 + Ex1[1] ** 2 + Etx2[0] ** 2 + Etx2[1] ** 2 + 1e-18
     return f * num / np.sqrt(den)
+
+
+def sampson_jacobian(R, t, B, x1c, x2c, f):
+    """Signed Sampson residuals (pixels) and their Jacobian in the 5 pose parameters.
+
+    The parameters are those of :func:`_perturb_pose` at ``dx = 0``: a rotation vector
+    applied on the left of ``R`` (3), then a step of the unit direction ``t`` in the
+    tangent basis ``B`` (2). Analytic: ``dE = [t]x [e_k]x R`` for the rotation and
+    ``[B_j]x R`` for the direction (the renormalisation has no first-order term).
+
+    Args:
+        R: ``(3, 3)``, t: ``(3,)`` unit, B: ``(3, 2)`` tangent basis at ``t``.
+        x1c, x2c: ``(3, N)`` normalised homogeneous coordinates as columns. f: focal length (pixels).
+
+    Returns:
+        ``(r, J)``: ``(N,)`` residuals and ``(N, 5)`` Jacobian.
+    """
+    E = skew(t) @ R
+    G = np.stack([skew(t) @ skew(e) @ R for e in np.eye(3)] + [skew(B[:, j]) @ R for j in range(2)])
+    Ex1 = E @ x1c
+    Etx2 = E.T @ x2c
+    num = np.einsum("in,in->n", x2c, Ex1)
+    den = Ex1[0] ** 2 + Ex1[1] ** 2 + Etx2[0] ** 2 + Etx2[1] ** 2 + 1e-18
+    sd = np.sqrt(den)
+    # both derivatives are linear in G_k: dnum_k = (x2 x1^T) : G_k and dden_k / 2 =
+    # sum_c Ex1_0 x1_c G_k[0, c] + Ex1_1 x1_c G_k[1, c] + Etx2_0 x2_c G_k[c, 0] + Etx2_1 x2_c G_k[c, 1],
+    # so J is one (5, 21) x (21, N) product
+    a = f / sd
+    b = -f * num / (den * sd)
+    M = np.empty((21, x1c.shape[1]))
+    M[:9] = ((a * x2c)[:, None, :] * x1c[None, :, :]).reshape(9, -1)
+    M[9:12] = (b * Ex1[0]) * x1c
+    M[12:15] = (b * Ex1[1]) * x1c
+    M[15:18] = (b * Etx2[0]) * x2c
+    M[18:21] = (b * Etx2[1]) * x2c
+    C = np.concatenate([G.reshape(5, 9), G[:, 0, :], G[:, 1, :], G[:, :, 0], G[:, :, 1]], 1)
+    return f * num / sd, (C @ M).T
 
 
 def _tangent_basis(t):
@@ -109,27 +151,21 @@ def refine_pose_sampson(
         ``((R, t), valid)``, ``|t| = 1``.
     """
     Kinv = np.linalg.inv(K)
-    x1n = np.concatenate([pts1, np.ones((len(pts1), 1))], 1) @ Kinv.T
-    x2n = np.concatenate([pts2, np.ones((len(pts2), 1))], 1) @ Kinv.T
-    f = float(np.sqrt(K[0, 0] * K[1, 1]))
+    x1c = Kinv @ np.concatenate([pts1, np.ones((len(pts1), 1))], 1).T  # (3, N): one column a match
+    x2c = Kinv @ np.concatenate([pts2, np.ones((len(pts2), 1))], 1).T
+    f = focal_px(K)
     R = R0.copy()
     t = np.asarray(t0, dtype=np.float64) / np.linalg.norm(t0)
     # matches far from the initial model have no weight under the truncated loss and
     # rarely come back within a few steps: refine on the rest (much cheaper)
-    near = np.abs(_signed_sampson(R, t, x1n, x2n, f)) < 6.0 * scale_px
+    near = np.abs(_signed_sampson(R, t, x1c, x2c, f)) < 6.0 * scale_px
     if near.sum() >= 8:
-        x1n, x2n = x1n[near], x2n[near]
-    eps = 1e-6
-    r = _signed_sampson(R, t, x1n, x2n, f)
+        x1c, x2c = np.ascontiguousarray(x1c[:, near]), np.ascontiguousarray(x2c[:, near])
+    r = _signed_sampson(R, t, x1c, x2c, f)
     lam = 1e-3
     for _ in range(iters):
         B = _tangent_basis(t)
-        J = np.empty((len(r), 5))
-        for k in range(5):
-            dx = np.zeros(5)
-            dx[k] = eps
-            Rk, tk = _perturb_pose(R, t, B, dx)
-            J[:, k] = (_signed_sampson(Rk, tk, x1n, x2n, f) - r) / eps
+        _, J = sampson_jacobian(R, t, B, x1c, x2c, f)
         # Cauchy IRLS weights, zero beyond 3 scales (gross outliers have no say)
         w = (np.abs(r) < 3.0 * scale_px) / (1.0 + (r / scale_px) ** 2)
         JW = J * w[:, None]
@@ -143,7 +179,7 @@ def refine_pose_sampson(
             except np.linalg.LinAlgError:
                 return (R0, t0), False
             Rn, tn = _perturb_pose(R, t, B, dx)
-            rn = _signed_sampson(Rn, tn, x1n, x2n, f)
+            rn = _signed_sampson(Rn, tn, x1c, x2c, f)
             cost_n = _robust_cost(rn, scale_px)
             if np.isfinite(cost_n) and cost_n <= cost:
                 R, t, r = Rn, tn, rn
@@ -194,7 +230,7 @@ def estimate_relative_pose(
         raise ValueError(f"K must be (3, 3), got {K.shape}")
     if pts1.shape[0] < 8:
         return None, False
-    f = float(np.sqrt(K[0, 0] * K[1, 1]))
+    f = focal_px(K)
     Kinv = np.linalg.inv(K)
     all1, all2 = pts1, pts2
     rng = np.random.default_rng(0) if rng is None else rng

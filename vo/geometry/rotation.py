@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from trianflow_vo.camera import focal_px
 from trianflow_vo.geometry.triangulation import bearings
 
 
@@ -23,7 +24,7 @@ def fit_rotation(pts1: np.ndarray, pts2: np.ndarray, K: np.ndarray, iters: int =
     b2 = bearings(pts2, K)
     b1 /= np.linalg.norm(b1, axis=1, keepdims=True)
     b2 /= np.linalg.norm(b2, axis=1, keepdims=True)
-    f = float(np.sqrt(K[0, 0] * K[1, 1]))
+    f = focal_px(K)
     w = np.ones(len(b1))
     R = np.eye(3)
     res = np.zeros(len(b1))
