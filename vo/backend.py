@@ -28,6 +28,35 @@ from trianflow_vo.keyframe import Keyframe
 
 
 @dataclass(frozen=True)
+class DepthCorrection:
+    """A keyframe's carried depth ``d`` becomes ``1 / (a / d + b)``: an affine map of inverse
+    depth (``b = 0``: a rescale by ``1 / a``), fitted by the back-end to its adjusted points
+    (:func:`~trianflow_vo.geometry.scale.fit_inverse_depth_affine`)."""
+
+    a: float
+    b: float = 0.0
+
+    def __post_init__(self):
+        if not (np.isfinite(self.a) and self.a > 0 and np.isfinite(self.b)):
+            raise ValueError(f"a depth correction needs a finite a > 0 and a finite b, got a={self.a}, b={self.b}")
+        object.__setattr__(self, "a", float(self.a))
+        object.__setattr__(self, "b", float(self.b))
+
+    def apply(self, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(corrected (N,), valid (N,))`` for depths ``(N,)`` > 0; not valid where the
+        corrected inverse depth is not positive (the corrected value is then meaningless)."""
+        depth = np.asarray(depth, dtype=np.float64)
+        inv = self.a / depth + self.b
+        valid = np.isfinite(inv) & (inv > 0)
+        return np.where(valid, 1.0 / np.where(valid, inv, 1.0), 0.0), valid
+
+    def median_factor(self, depth: np.ndarray) -> float:
+        """The median of corrected / original depth over ``depth`` ``(N,)`` (its valid entries; 1 when none)."""
+        new, valid = self.apply(depth)
+        return float(np.median(new[valid] / np.asarray(depth, dtype=np.float64)[valid])) if valid.any() else 1.0
+
+
+@dataclass(frozen=True)
 class PoseRevision:
     """New camera-to-world poses of some keyframes.
 
@@ -35,23 +64,24 @@ class PoseRevision:
         T_world_cam: keyframe source index -> ``(4, 4)`` revised pose.
         reason: one short sentence (e.g. "window bundle adjustment, 5 keyframes").
         ms: time the back-end spent on it.
-        depth_scale: keyframe source index -> factor (> 0) for the depth that keyframe
-            carries, so that the frames solved from it next are scaled like the revised
-            poses (the odometry applies it to its current keyframe's tracks).
+        depth_correction: keyframe source index -> :class:`DepthCorrection` of the depth
+            that keyframe carries, so that the frames solved from it next are scaled like
+            the revised poses and points (the odometry applies it to its current keyframe's
+            tracks). A revision may carry only a correction (no poses).
     """
 
     T_world_cam: Mapping[int, np.ndarray]
     reason: str = ""
     ms: float = 0.0
-    depth_scale: Mapping[int, float] = field(default_factory=dict)
+    depth_correction: Mapping[int, "DepthCorrection"] = field(default_factory=dict)
 
     def __post_init__(self):
-        scales = {}
-        for k, s in dict(self.depth_scale).items():
-            if not (np.isfinite(s) and s > 0):
-                raise ValueError(f"depth scale of keyframe {k} must be finite and > 0, got {s}")
-            scales[int(k)] = float(s)
-        object.__setattr__(self, "depth_scale", MappingProxyType(scales))
+        corrections = {}
+        for k, c in dict(self.depth_correction).items():
+            if not isinstance(c, DepthCorrection):
+                raise ValueError(f"depth correction of keyframe {k} must be a DepthCorrection, got {c!r}")
+            corrections[int(k)] = c
+        object.__setattr__(self, "depth_correction", MappingProxyType(corrections))
         poses = {}
         for k, T in dict(self.T_world_cam).items():
             T = np.array(T, dtype=np.float64)

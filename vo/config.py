@@ -340,11 +340,19 @@ class BackendConfig(_Section):
     step_trans_pnp: float = _opt(1.0, "sigma of the translation of a step solved by PnP or rotation only (a "
                                       "handed-on keyframe), as a fraction of the window's median two-view step "
                                       "(or of its own length when larger)", range=_Range(0.0, lo_open=True))
-    rescale_depth: bool = _opt(False, "rescale the new keyframe's carried depth to the adjusted points' depths "
-                                      "(measured worse on KITTI and 7-Scenes: off)")
+    depth_correction: Literal["none", "affine", "shape", "scale"] = _opt(
+        "none", "correct the carried depth of the keyframe after an adjustment to the adjusted points seen in it: "
+                "affine = an affine map of inverse depth (a two-view step's small rotation error shifts all "
+                "inverse depths alike), shape = the same with the median depth kept (the front-end's scale), "
+                "scale = one factor, none = keep the front-end's depth (measured: affine better on 7-Scenes, "
+                "worse on KITTI 06 and the synthetic sequences; README, back-end)")
+    depth_correction_max: float = _opt(3.0, "an affine depth correction is refused for a scale-only one when it "
+                                            "would change the depth of the keyframe's tracks (2nd to 98th "
+                                            "percentile) by factors differing by more than this",
+                                       range=_Range(1.0, lo_open=True))
     concurrent: bool = _opt(True, "adjust each window in a worker process while the next frames are solved; "
                                   "the revision is applied at the next keyframe (the same final poses, less time "
-                                  "per frame); not with rescale_depth, which needs the blocking order")
+                                  "per frame)")
     max_shift: float = _opt(0.5, "an adjustment moving a keyframe by more than this many keyframe steps is "
                                  "rejected", range=_Range(0.0, lo_open=True))
     max_rotation_deg: float = _opt(3.0, "an adjustment rotating a keyframe by more than this (degrees) is rejected",

@@ -340,17 +340,21 @@ class Odometry:
 
     def apply_revision(self, revision: PoseRevision, T_world_last: np.ndarray) -> None:
         """A back-end moved keyframes: chain on from the revised pose of the current keyframe,
-        with its carried depth rescaled by ``revision.depth_scale`` when the back-end gives one.
+        with its carried depth corrected by ``revision.depth_correction`` when the back-end
+        gives one (tracks whose corrected depth would not be positive end; the last step
+        length follows the median change of depth).
 
         ``T_world_last`` is the last frame's pose after the revision (from the
         pipeline's :class:`~trianflow_vo.backend.Trajectory`)."""
         kf = self.keyframe
         if kf is not None and kf.index in revision.T_world_cam:
             kf = kf.with_pose(revision.T_world_cam[kf.index])
-        s = None if kf is None else revision.depth_scale.get(kf.index)
-        if s is not None and len(kf.tracks):
-            kf = kf.with_tracks(kf.tracks.scaled(s))
+        c = None if kf is None else revision.depth_correction.get(kf.index)
+        if c is not None and len(kf.tracks):
+            tr = kf.tracks
+            depth, valid = c.apply(tr.depth)
+            kf = kf.with_tracks(Tracks(tr.ids[valid], tr.pts[valid], depth[valid], tr.weight[valid]))
             if self.last_step_norm is not None:
-                self.last_step_norm *= s
+                self.last_step_norm *= c.median_factor(tr.depth)
         self.keyframe = kf
         self.T_world_last = np.array(T_world_last, dtype=np.float64)

@@ -404,7 +404,11 @@ def _close(part, runlog: RunLog) -> None:
 
 
 def _revise(revision, trajectory: Trajectory, odo, observers: list[Observer]) -> None:
-    if revision is None or not revision.T_world_cam:
+    if revision is None:
+        return
+    if not revision.T_world_cam:
+        if revision.depth_correction:  # the keyframe's depth only, no pose moved
+            odo.apply_revision(revision, trajectory.entries[-1].T_world_cam)
         return
     revised = trajectory.revise(revision)
     odo.apply_revision(revision, trajectory.entries[-1].T_world_cam)

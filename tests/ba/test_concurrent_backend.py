@@ -71,12 +71,25 @@ def test_a_run_that_fails_mid_way_stops_the_worker(drive, tmp_path, monkeypatch,
     assert multiprocessing.active_children() == []
 
 
-def test_depth_rescale_adjusts_in_the_run_process_and_says_so(drive, tmp_path, run_seq):
-    # backend.concurrent left at its default (true)
-    doc, _ = run_seq(drive, tmp_path / "rescale", "backend.window=5", "backend.rescale_depth=true")
-    assert doc["config"]["backend"]["concurrent"] is True
-    assert doc["backend"]["concurrent"] is False and doc["backend"]["worker_peak_rss_mb"] is None
-    assert doc["backend"]["depth_rescales"] > 0
+@pytest.mark.parametrize("mode", ["affine", "scale"])
+def test_depth_correction_keeps_the_worker_and_its_poses_equal_to_blocking(long_drive, tmp_path, run_seq, mode):
+    """The correction of the next keyframe's depth comes from the same adjusted points in both orders
+    (``min_points`` 10: on this short drive 36-56 adjusted points reach each keyframe, fewer of them on
+    pixels with front-end depth)."""
+    args = ("backend.window=5", f"backend.depth_correction={mode}", "backend.min_points=10")
+    doc_c, p_c = run_seq(long_drive, tmp_path / "c", *args)
+    doc_b, p_b = run_seq(long_drive, tmp_path / "b", *args, "backend.concurrent=false")
+    _, p_n = run_seq(long_drive, tmp_path / "n", "backend.window=5", "backend.min_points=10")
+    assert doc_c["backend"]["concurrent"] is True and doc_b["backend"]["concurrent"] is False
+    assert doc_c["backend"]["depth_corrections"] > 0
+    assert doc_c["backend"]["depth_corrections"] == doc_b["backend"]["depth_corrections"]
+    assert doc_c["backend"]["depth_correction"] == mode
+    if mode == "scale":
+        assert doc_c["backend"]["depth_spread_max"] == 1.0
+    else:
+        assert doc_c["backend"]["depth_spread_max"] > 1.0  # some offsets were corrected
+    np.testing.assert_allclose(p_c, p_b, rtol=0, atol=1e-8)
+    assert np.abs(p_c - p_n).max() > 1e-6  # the corrections did change the run
 
 
 def test_the_worker_leaves_ctrl_c_to_the_run():

@@ -7,7 +7,7 @@ import pytest
 
 pytest.importorskip("gtsam", reason="the window back-end needs gtsam (a dependency of the project)")
 
-from trianflow_vo.backend import NoBackend, PoseRevision, make_backend  # noqa: E402
+from trianflow_vo.backend import DepthCorrection, NoBackend, PoseRevision, make_backend  # noqa: E402
 from trianflow_vo.ba.backend import WindowBackend  # noqa: E402
 from trianflow_vo.config import BackendConfig, ConfigError  # noqa: E402
 from trianflow_vo.keyframe import Tracks  # noqa: E402
@@ -74,7 +74,7 @@ def test_make_backend_and_its_configuration():
             BackendConfig(**bad)
 
 
-def test_revision_depth_scale_rescales_the_keyframes_carried_depth():
+def test_revision_depth_correction_maps_the_keyframes_carried_inverse_depth():
     from trianflow_vo.camera import PinholeCamera
     from trianflow_vo.depth.triangulated import TriangulatedDepth
     from trianflow_vo.flow.dis import DisFlow
@@ -83,15 +83,27 @@ def test_revision_depth_scale_rescales_the_keyframes_carried_depth():
 
     cam = PinholeCamera(np.array([[100.0, 0, 50], [0, 100.0, 40], [0, 0, 1]]), (80, 100))
     odo = Odometry(cam, DisFlow(), TriangulatedDepth((80, 100)))
-    tracks = Tracks(np.arange(3), np.array([[10.0, 10], [20, 20], [30, 30]]), np.array([1.0, 2.0, 4.0]), np.ones(3))
+    tracks = Tracks(np.arange(4), np.array([[10.0, 10], [20, 20], [30, 30], [40, 40]]),
+                    np.array([1.0, 2.0, 4.0, 20.0]), np.ones(4))
     odo.keyframe = Keyframe(7, np.zeros((80, 100, 3), np.uint8), None, np.eye(4), tracks)
+    odo.last_step_norm = 1.0
     T = np.eye(4)
     T[0, 3] = 0.5
-    odo.apply_revision(PoseRevision({7: T}, depth_scale={7: 0.5}), T)
-    np.testing.assert_allclose(odo.keyframe.tracks.depth, [0.5, 1.0, 2.0])
+    # 1 / d' = 2 / d - 0.25: depths 1, 2, 4 become 1 / 1.75, 1 / 0.75, 4; 1 / 20 -> 0.1 - 0.25 < 0: that track ends
+    odo.apply_revision(PoseRevision({7: T}, depth_correction={7: DepthCorrection(2.0, -0.25)}), T)
+    np.testing.assert_allclose(odo.keyframe.tracks.depth, [1 / 1.75, 1 / 0.75, 4.0])
+    np.testing.assert_array_equal(odo.keyframe.tracks.ids, [0, 1, 2])
     np.testing.assert_allclose(odo.keyframe.T_world_cam, T)
-    with pytest.raises(ValueError):
-        PoseRevision({7: T}, depth_scale={7: -1.0})
+    # the step length follows the median change of depth (of the valid tracks: 1/1.75, 2/3, 1)
+    np.testing.assert_allclose(odo.last_step_norm, 2 / 3)
+    # a scale-only correction (b = 0) is a rescale by 1 / a, without any pose
+    odo.apply_revision(PoseRevision({}, depth_correction={7: DepthCorrection(0.5)}), T)
+    np.testing.assert_allclose(odo.keyframe.tracks.depth, [2 / 1.75, 2 / 0.75, 8.0])
+    for bad in ((-1.0, 0.0), (0.0, 0.0), (1.0, np.nan), (np.inf, 0.0)):
+        with pytest.raises(ValueError, match="depth correction"):
+            DepthCorrection(*bad)
+    with pytest.raises(ValueError, match="DepthCorrection"):
+        PoseRevision({7: T}, depth_correction={7: 0.5})
 
 
 def test_pnp_steps_get_their_own_translation_sigma():

@@ -12,7 +12,7 @@ from trianflow_vo.flow.masks import fb_distance, flow_scores, occlusion_mask, ra
 from trianflow_vo.camera import unproject as backproject
 from trianflow_vo.geometry.pnp import solve_pnp
 from trianflow_vo.geometry.rotation import fit_rotation
-from trianflow_vo.geometry.scale import align_scale, weighted_median
+from trianflow_vo.geometry.scale import align_scale, fit_inverse_depth_affine, weighted_median
 from trianflow_vo.geometry.se3 import rodrigues, rotation_angle
 
 
@@ -47,6 +47,31 @@ def test_align_scale_too_few_points():
 
 
 # --------------------------------------------------------------------------- PnP
+def test_inverse_depth_affine_recovers_a_known_offset_with_noise_and_outliers():
+    rng = np.random.default_rng(3)
+    z_true = rng.uniform(1.0, 10.0, 400)
+    a0, b0 = 0.8, 0.05  # 1 / z_true = a0 / z_est + b0
+    z_est = a0 / (1.0 / z_true - b0 + rng.normal(0, 2e-3, z_true.size))
+    z_est[:40] = rng.uniform(1.0, 30.0, 40)  # outliers
+    (a, b), ok = fit_inverse_depth_affine(z_est, z_true)
+    assert ok and abs(a - a0) < 0.02 and abs(b - b0) < 3e-3
+    # no single scale fits such a depth: one fitted on the far points is wrong for the near ones
+    far, near = z_true > 6, z_true < 2
+    s, _ = align_scale(z_est[far], z_true[far])
+    assert abs(np.median(z_true[near] / z_est[near]) / s - 1) > 0.1
+    corrected = 1.0 / (a / z_est + b)
+    assert np.median(np.abs(np.log(corrected[40:] / z_true[40:]))) < 0.01
+
+
+def test_inverse_depth_affine_without_depth_spread_is_a_scale():
+    z = np.full(50, 4.0) * np.exp(np.random.default_rng(0).normal(0, 0.01, 50))
+    (a, b), ok = fit_inverse_depth_affine(z, 2.0 * z)
+    assert ok and b == 0.0 and a == pytest.approx(0.5)
+    assert fit_inverse_depth_affine(np.ones(5), np.ones(5), min_points=10)[1] is False
+    with pytest.raises(ValueError):
+        fit_inverse_depth_affine(np.ones(3), np.ones(4))
+
+
 def test_pnp_exact_and_with_outliers():
     R = rodrigues(np.array([0.01, -0.03, 0.02]))
     t = np.array([0.2, -0.1, 1.5])

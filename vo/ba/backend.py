@@ -10,10 +10,16 @@ On every new keyframe:
    held (gauge and scale); tracks with a reprojection error above ``outlier_px``
    after the solve end;
 3. the revised keyframe poses go back through the back-end seam
-   (:class:`~trianflow_vo.backend.PoseRevision`), with the factor by which the new
-   keyframe's carried depth must be rescaled so that the next frames are scaled like
-   the adjusted window (``depth_scale``): the median ratio of the adjusted points'
-   depths to the front-end's depths at the same pixels.
+   (:class:`~trianflow_vo.backend.PoseRevision`);
+4. at the next keyframe, the depth it carries is corrected to the adjusted points it
+   sees (``depth_correction``, :class:`~trianflow_vo.backend.DepthCorrection`): an
+   affine map of inverse depth fitted to those points' depths in it (by its pose chained
+   from the revised poses) against the front-end's depths at the same pixels. A two-view
+   step whose rotation is a little wrong gets every ray angle wrong by about the same
+   amount, so its depth is off by an offset of inverse depth, not by one scale; when
+   the camera later keeps only part of that depth (the far points of a turn), a rescale
+   of the whole becomes a jump of scale. The window, seeing each point from several
+   keyframes, measures the offset; the correction removes it before it is handed on.
 
 With ``backend.concurrent`` (the default) step 2 runs in a worker process
 (:mod:`~trianflow_vo.ba.worker`; GTSAM holds the interpreter lock, so a thread
@@ -23,9 +29,9 @@ newer keyframe, chained from its revised reference, and the points that keyframe
 step triangulated are moved with it. The front-end solves each frame relative to
 its keyframe, so the final poses are those of an adjustment that blocks (to the
 last printed digit); only the moment a revision reaches the outputs moves by one
-keyframe. The depth rescale needs the blocking order: with it, windows are
-adjusted here (``concurrent`` false in ``run.json``). If the worker process dies,
-the run says so and adjusts in its own process from then on.
+keyframe. The depth correction is made at the next keyframe in both orders, from the
+same points, so it keeps them equal. If the worker process dies, the run says so
+and adjusts in its own process from then on.
 
 With ``backend.anchors`` > 0 (the default), keyframes that leave the window go to a small archive
 (:mod:`~trianflow_vo.ba.anchors`: image, adjusted pose, points and their track ids). When the
@@ -57,7 +63,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from trianflow_vo.backend import PoseRevision
+from trianflow_vo.backend import DepthCorrection, PoseRevision
 from trianflow_vo.ba.anchors import (AnchorArchive, Archived, invert_flow_at, link_points, predicted_flow,
                                      revisit_candidates, warp_to_new)
 from trianflow_vo.ba.graph import project
@@ -99,11 +105,11 @@ def _one_per_cell(uv: np.ndarray, ok: np.ndarray, cell_px: int, width: int) -> n
 
 @dataclass(frozen=True)
 class _Outcome:
-    """A concluded adjustment: revised poses (empty when it failed or was rejected), depth scales,
-    the window's size and the solve's time (ms)."""
+    """A concluded adjustment: revised poses (empty when it failed or was rejected), the
+    adjusted points kept (track id -> world point), the window's size and the solve's time (ms)."""
 
     poses: dict
-    depth_scale: dict
+    points: dict
     n_keyframes: int
     ms: float
 
@@ -156,18 +162,21 @@ class WindowBackend:
         # keyframe -> (its reference, front-end T_ref_cam, solved by two-view geometry)
         self.steps: dict[int, tuple[int, np.ndarray, bool]] = {}
         self.stats = {"solves": 0, "failures": 0, "rejected": 0, "skipped": 0, "revisions": 0, "tracks_ended": 0,
-                      "track_resets": 0, "depth_rescales": 0, "unscored_births": 0, "anchored_windows": 0,
+                      "track_resets": 0, "depth_corrections": 0, "depth_corrections_scale_only": 0,
+                      "unscored_births": 0, "anchored_windows": 0,
                       "anchor_links": 0, "anchor_tries": 0}
         self._ms: list[float] = []
         self._points: list[int] = []
         self._factors: list[int] = []
-        self._depth_scales: list[float] = []
+        self._depth_factors: list[float] = []  # median depth change of each correction
+        self._depth_spread: list[float] = []  # its 98th / 2nd percentile factor (1 = a rescale)
+        # the adjusted points of the last concluded window, for the next keyframe's depth correction
+        self._fresh_points: dict | None = None
         self._since = 0  # keyframes since the last adjustment
         self._pending: _Job | None = None  # an adjustment running in the worker process
         self._pool = None  # the worker process (started at the first keyframe)
         self._worker_rss_mb: float | None = None
-        # the depth rescale must reach the newest keyframe before the next frame is solved: blocking
-        self.concurrent = bool(config.concurrent and not config.rescale_depth)  # as planned (run.json)
+        self.concurrent = bool(config.concurrent)  # as planned (run.json)
         # revisit anchors (backend.anchors > 0): old keyframes, the window's grey images, the path travelled
         self.archive = AnchorArchive(config.anchor_keep) if config.anchors > 0 else None
         self._gray: dict[int, np.ndarray] = {}
@@ -194,21 +203,27 @@ class WindowBackend:
             T_world_k = revised[int(result.ref_index)] @ np.asarray(result.T_ref_cam, dtype=np.float64)
             revised[k] = T_world_k
         self.poses[k] = T_world_k
+        # the points of the last concluded window (here, or at the previous keyframe when blocking)
+        points, self._fresh_points = self._fresh_points, None
         # the step's triangulated points are in the world of the unrevised chain too
         moved = T_world_k @ invert_T(np.asarray(keyframe.T_world_cam, dtype=np.float64)) if k in revised else None
         now = self._advance(k, keyframe, result, moved)  # an adjustment solved here (not concurrent), or None
-        if done is None and now is None:
+        correction = {}
+        if points and self.cfg.depth_correction != "none":
+            c = self._depth_correction(keyframe, T_world_k, points)
+            if c is not None:
+                correction[k] = c
+        if done is None and now is None and not correction:
             return None
         ms = (time.perf_counter() - t0) * 1000.0 + (done.ms if done else 0.0)
         self._ms.append(ms)
-        scales = {}
         if now is not None:
             revised.update(now.poses)
-            scales = now.depth_scale
-        if not revised:
+        if not revised and not correction:
             return None
-        n = (now or done).n_keyframes
-        return PoseRevision(revised, reason=f"window bundle adjustment of {n} keyframes", ms=ms, depth_scale=scales)
+        n = (now or done).n_keyframes if (now or done) else 0
+        why = f"window bundle adjustment of {n} keyframes" if revised else "depth correction"
+        return PoseRevision(revised, reason=why, ms=ms, depth_correction=correction)
 
     def finish(self) -> PoseRevision | None:
         done = self._collect()
@@ -233,7 +248,9 @@ class WindowBackend:
             **self.stats,
             "ms_total": float(np.sum(self._ms)) if self._ms else 0.0, "ms_median": med(self._ms),
             "points_median": med(self._points), "factors_median": med(self._factors),
-            "depth_scale_median": med(self._depth_scales),
+            "depth_correction": c.depth_correction,
+            "depth_factor_median": med(self._depth_factors),
+            "depth_spread_median": med(self._depth_spread), "depth_spread_max": max(self._depth_spread, default=None),
             "worker_peak_rss_mb": self._worker_rss_mb,
         }
 
@@ -480,8 +497,8 @@ class WindowBackend:
             self.stats["anchored_windows"] += 1
         self.poses.update(revised)
         self.stats["revisions"] += 1
-        scale = self._depth_scale(job.keyframe, sol.poses[newest], good) if c.rescale_depth else None
-        return _Outcome(revised, {newest: scale} if scale is not None else {}, len(window), job.ms)
+        self._fresh_points = good
+        return _Outcome(revised, good, len(window), job.ms)
 
     def _step_factors(self) -> dict[int, tuple[int, np.ndarray, float]]:
         """The window's steps with their translation sigmas: a two-view step ``step_trans`` x its
@@ -507,26 +524,53 @@ class WindowBackend:
                 return f"keyframe {k} would rotate {rot:.2f} deg"
         return ""
 
-    def _depth_scale(self, keyframe: Keyframe, T_world_new: np.ndarray, points: dict) -> float | None:
-        """Median ratio adjusted depth / front-end depth of the newest keyframe's tracked points."""
+    def _depth_correction(self, keyframe: Keyframe, T_world_k: np.ndarray, points: dict) -> DepthCorrection | None:
+        """The correction of keyframe ``k``'s carried depth (its tracks just followed into it):
+        the adjusted ``points`` (track id -> world point) seen in it, put in its camera by
+        ``T_world_k`` ``(4, 4)``, against the front-end's depth at their pixels. An affine
+        correction that would change the depths of the keyframe's tracks (2nd to 98th
+        percentile) by factors more than ``depth_correction_max`` apart is refused for a
+        scale-only one; None with fewer than ``min_points`` points."""
+        from trianflow_vo.geometry.scale import fit_inverse_depth_affine
+
+        c = self.cfg
         ids, uv = self.tracks.obs.get(keyframe.index, (np.zeros(0, np.int64), np.zeros((0, 2))))
         if ids.size == 0 or len(keyframe.tracks) == 0:
             return None
         has = np.array([t in points for t in ids.tolist()], dtype=bool)
-        if has.sum() < self.cfg.min_points:
+        if has.sum() < c.min_points:
             return None
         X = np.stack([points[t] for t in ids[has].tolist()])
-        z_ba = ((X - T_world_new[:3, 3]) @ T_world_new[:3, :3])[:, 2]
+        z_ba = ((X - T_world_k[:3, 3]) @ T_world_k[:3, :3])[:, 2]
         z_fe = _depth_at(keyframe.tracks, self.size_hw, uv[has])
         ok = (z_fe > 0) & (z_ba > 0)
-        if ok.sum() < self.cfg.min_points:
+        if ok.sum() < c.min_points:
             return None
-        from trianflow_vo.geometry.scale import weighted_median
-
-        # near points fix the ratio best (depth noise grows with depth squared)
-        s = float(np.exp(weighted_median(np.log(z_ba[ok] / z_fe[ok]), 1.0 / z_fe[ok] ** 2)))
-        if not np.isfinite(s) or s <= 0:
-            return None
-        self.stats["depth_rescales"] += 1
-        self._depth_scales.append(s)
-        return s
+        spread = 1.0
+        if c.depth_correction in ("affine", "shape"):
+            (a, b), valid = fit_inverse_depth_affine(z_fe[ok], z_ba[ok], min_points=c.min_points)
+            if valid and b != 0.0:
+                d = np.percentile(keyframe.tracks.depth, [2, 98])
+                f = 1.0 / (a + b * d)  # corrected / carried depth at the two ends
+                spread = float(f.max() / f.min()) if np.all(f > 0) else np.inf
+                if not spread <= c.depth_correction_max:
+                    self.stats["depth_corrections_scale_only"] += 1
+                    valid, spread = False, 1.0
+        else:
+            valid = False
+        if c.depth_correction == "shape":
+            if not valid or b == 0.0:
+                return None
+            # the front-end's scale kept: the correction's median change of depth over the tracks is 1
+            m = DepthCorrection(a, b).median_factor(keyframe.tracks.depth)
+            a, b = a * m, b * m
+        elif not valid:
+            s = float(np.median(z_ba[ok] / z_fe[ok]))
+            if not (np.isfinite(s) and s > 0):
+                return None
+            a, b = 1.0 / s, 0.0
+        corr = DepthCorrection(a, b)
+        self.stats["depth_corrections"] += 1
+        self._depth_factors.append(corr.median_factor(keyframe.tracks.depth))
+        self._depth_spread.append(spread)
+        return corr

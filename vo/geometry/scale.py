@@ -84,3 +84,54 @@ def fit_scale_ransac(
         return 1.0, False
     s = float(z[best] @ d[best] / (z[best] @ z[best]))
     return s, s > 0
+
+
+def fit_inverse_depth_affine(
+    depth_est: np.ndarray, depth_ref: np.ndarray, min_points: int = 10, min_spread: float = 0.1,
+    iters: int = 10, huber_k: float = 1.5,
+) -> tuple[tuple[float, float], bool]:
+    """``(a, b)`` with ``1 / depth_ref ~ a / depth_est + b``: an affine map of inverse depth.
+
+    A two-view step whose rotation or translation direction is slightly wrong
+    triangulates every point with the same error of its ray angle, i.e. an error of
+    inverse depth that is the same for near and far points: such a depth is not off
+    by one scale, and a rescale fitted on some of its points is wrong for the others.
+    The fit is a Huber-weighted least squares line in inverse depth (residuals in
+    inverse depth have about the same noise near and far), ``iters`` reweightings
+    with the threshold ``huber_k`` x the residuals' scaled median absolute deviation.
+    When the inverse depths span less than ``min_spread`` (10th to 90th percentile,
+    relative to their median) the offset is not separable from the scale, and only
+    the scale is fitted (``b = 0``, ``a`` the median ratio of inverse depths).
+
+    Args:
+        depth_est: ``(N,)`` depths to be corrected (> 0; others are ignored).
+        depth_ref: ``(N,)`` better depths of the same points (> 0; others are ignored).
+        min_points: fewer usable pairs than this gives ``valid = False``.
+
+    Returns:
+        ``((a, b), valid)``; not valid also when the fitted ``a`` is not positive.
+    """
+    z = np.asarray(depth_est, dtype=np.float64)
+    d = np.asarray(depth_ref, dtype=np.float64)
+    if z.shape != d.shape or z.ndim != 1:
+        raise ValueError(f"depth_est and depth_ref must both be (N,), got {z.shape}, {d.shape}")
+    ok = np.isfinite(z) & np.isfinite(d) & (z > 0) & (d > 0)
+    if ok.sum() < min_points:
+        return (1.0, 0.0), False
+    u, v = 1.0 / z[ok], 1.0 / d[ok]
+    p10, p50, p90 = np.percentile(u, [10, 50, 90])
+    scale_only = (float(np.median(v / u)), 0.0)
+    if (p90 - p10) < min_spread * p50:
+        return scale_only, True
+    w = np.ones_like(u)
+    a = b = 0.0
+    for _ in range(max(1, iters)):
+        sw = np.sqrt(w)
+        (a, b), *_ = np.linalg.lstsq(np.stack([u * sw, sw], axis=1), v * sw, rcond=None)
+        r = np.abs(v - a * u - b)
+        s = 1.4826 * float(np.median(r))
+        if s <= 0:
+            break
+        w = np.minimum(1.0, huber_k * s / np.maximum(r, 1e-300))
+    a, b = float(a), float(b)
+    return (a, b), bool(np.isfinite(a) and np.isfinite(b) and a > 0)
