@@ -46,10 +46,6 @@ class Tracks:
     def __len__(self) -> int:
         return int(self.ids.shape[0])
 
-    def scaled(self, s: float) -> Tracks:
-        """The same tracks with every depth multiplied by ``s`` > 0 (a new object)."""
-        return Tracks(self.ids, self.pts, self.depth * float(s), self.weight)
-
     @classmethod
     def empty(cls) -> Tracks:
         return cls(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0), np.zeros(0))
@@ -90,5 +86,5 @@ class Keyframe:
         return replace(self, T_world_cam=np.asarray(T_world_cam, dtype=np.float64).copy())
 
     def with_tracks(self, tracks: Tracks) -> Keyframe:
-        """The same keyframe with revised tracks (e.g. rescaled depth)."""
+        """The same keyframe with revised tracks (e.g. corrected depth)."""
         return replace(self, tracks=tracks)
