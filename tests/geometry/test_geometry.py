@@ -186,19 +186,19 @@ def test_shape_checks():
 def test_sampson_jacobian_matches_central_differences():
     """The analytic Jacobian of the refinement (and of the direction uncertainty) against
     central differences of the residual, on noisy matches away from the solution."""
-    from trianflow_vo.geometry.relative_pose import _perturb_pose, _signed_sampson, _tangent_basis, sampson_jacobian
+    from trianflow_vo.camera import focal_px
+    from trianflow_vo.geometry.relative_pose import (_perturb_pose, _signed_sampson, _tangent_basis,
+                                                     normalised_columns, sampson_jacobian)
 
     rng = np.random.default_rng(3)
     pts1, pts2, _, R, t = two_view_scene(n=400, seed=3)
     pts2 = pts2 + rng.normal(scale=0.7, size=pts2.shape)
-    Kinv = np.linalg.inv(K_TEST)
-    x1 = np.ascontiguousarray(Kinv @ np.c_[pts1, np.ones(len(pts1))].T)
-    x2 = np.ascontiguousarray(Kinv @ np.c_[pts2, np.ones(len(pts2))].T)
+    x1, x2 = normalised_columns(pts1, K_TEST), normalised_columns(pts2, K_TEST)
     R0 = rodrigues(np.array([0.01, -0.02, 0.005])) @ R
     t0 = t / np.linalg.norm(t) + np.array([0.05, 0.02, -0.03])
     t0 /= np.linalg.norm(t0)
     B = _tangent_basis(t0)
-    f = float(np.sqrt(K_TEST[0, 0] * K_TEST[1, 1]))
+    f = focal_px(K_TEST)
     r, J = sampson_jacobian(R0, t0, B, x1, x2, f)
     assert J.shape == (len(pts1), 5)
     np.testing.assert_allclose(r, _signed_sampson(R0, t0, x1, x2, f), rtol=1e-12, atol=1e-12)

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from trianflow_vo.camera import focal_px
-from trianflow_vo.geometry.relative_pose import _tangent_basis, sampson_jacobian
+from trianflow_vo.geometry.relative_pose import _tangent_basis, normalised_columns, sampson_jacobian
 
 R_DATA = 4  # two image points per match
 
@@ -122,9 +122,7 @@ def direction_sigma(R: np.ndarray, t: np.ndarray, pts1: np.ndarray, pts2: np.nda
         return float("inf"), False
     t = np.asarray(t, dtype=np.float64)
     t = t / np.linalg.norm(t)
-    Kinv = np.linalg.inv(K)
-    x1c = Kinv @ np.concatenate([pts1, np.ones((n, 1))], 1).T  # (3, N): one column a match
-    x2c = Kinv @ np.concatenate([pts2, np.ones((n, 1))], 1).T
+    x1c, x2c = normalised_columns(pts1, K), normalised_columns(pts2, K)
     f = focal_px(K)
     B = _tangent_basis(t)  # the parametrisation of refine_pose_sampson: its Jacobian, at the solution
     _, J = sampson_jacobian(R, t, B, x1c, x2c, f)

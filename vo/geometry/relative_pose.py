@@ -22,6 +22,7 @@ from trianflow_vo.geometry.epipolar import sampson_distance
 from trianflow_vo.geometry.essential import choose_pose_cheirality
 from trianflow_vo.geometry.fundamental import eight_point, essential_from_fundamental, fundamental_from_pose
 from trianflow_vo.geometry.se3 import rodrigues, skew
+from trianflow_vo.geometry.triangulation import bearings
 
 
 @dataclass
@@ -63,17 +64,29 @@ def _ransac_8point(pts1, pts2, threshold_px, rng, prob=0.999, max_iters=2000):
     return F, best_inl
 
 
-def _signed_sampson(R, t, x1c, x2c, f):
-    """Signed Sampson residuals ``(N,)`` in pixels of the pose ``(R, t)``.
+def normalised_columns(pts: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """``(3, N)`` contiguous normalised homogeneous coordinates (one column a pixel of ``pts``
+    ``(N, 2)``): :func:`~trianflow_vo.geometry.triangulation.bearings` as columns, whose rows are
+    contiguous, which keeps every per-match operation of the Sampson residual a contiguous one."""
+    return np.ascontiguousarray(bearings(pts, K).T)
 
-    ``x1c``, ``x2c``: ``(3, N)`` normalised homogeneous coordinates as columns (rows are
-    contiguous, which keeps every per-match operation a contiguous one); f: focal length.
-    """
-    E = skew(t) @ R
+
+def _sampson_parts(E, x1c, x2c):
+    """``(E x1, E^T x2, x2^T E x1, Sampson denominator)`` of the columns ``x1c``, ``x2c`` ``(3, N)``."""
     Ex1 = E @ x1c
     Etx2 = E.T @ x2c
     num = np.einsum("in,in->n", x2c, Ex1)
     den = Ex1[0] ** 2 + Ex1[1] ** 2 + Etx2[0] ** 2 + Etx2[1] ** 2 + 1e-18
+    return Ex1, Etx2, num, den
+
+
+def _signed_sampson(R, t, x1c, x2c, f):
+    """Signed Sampson residuals ``(N,)`` in pixels of the pose ``(R, t)``.
+
+    ``x1c``, ``x2c``: ``(3, N)`` normalised homogeneous coordinates as columns
+    (:func:`normalised_columns`); f: focal length.
+    """
+    _, _, num, den = _sampson_parts(skew(t) @ R, x1c, x2c)
     return f * num / np.sqrt(den)
 
 
@@ -92,12 +105,8 @@ def sampson_jacobian(R, t, B, x1c, x2c, f):
     Returns:
         ``(r, J)``: ``(N,)`` residuals and ``(N, 5)`` Jacobian.
     """
-    E = skew(t) @ R
     G = np.stack([skew(t) @ skew(e) @ R for e in np.eye(3)] + [skew(B[:, j]) @ R for j in range(2)])
-    Ex1 = E @ x1c
-    Etx2 = E.T @ x2c
-    num = np.einsum("in,in->n", x2c, Ex1)
-    den = Ex1[0] ** 2 + Ex1[1] ** 2 + Etx2[0] ** 2 + Etx2[1] ** 2 + 1e-18
+    Ex1, Etx2, num, den = _sampson_parts(skew(t) @ R, x1c, x2c)
     sd = np.sqrt(den)
     # both derivatives are linear in G_k: dnum_k = (x2 x1^T) : G_k and dden_k / 2 =
     # sum_c Ex1_0 x1_c G_k[0, c] + Ex1_1 x1_c G_k[1, c] + Etx2_0 x2_c G_k[c, 0] + Etx2_1 x2_c G_k[c, 1],
@@ -150,9 +159,7 @@ def refine_pose_sampson(
     Returns:
         ``((R, t), valid)``, ``|t| = 1``.
     """
-    Kinv = np.linalg.inv(K)
-    x1c = Kinv @ np.concatenate([pts1, np.ones((len(pts1), 1))], 1).T  # (3, N): one column a match
-    x2c = Kinv @ np.concatenate([pts2, np.ones((len(pts2), 1))], 1).T
+    x1c, x2c = normalised_columns(pts1, K), normalised_columns(pts2, K)
     f = focal_px(K)
     R = R0.copy()
     t = np.asarray(t0, dtype=np.float64) / np.linalg.norm(t0)
@@ -231,15 +238,14 @@ def estimate_relative_pose(
     if pts1.shape[0] < 8:
         return None, False
     f = focal_px(K)
-    Kinv = np.linalg.inv(K)
     all1, all2 = pts1, pts2
     rng = np.random.default_rng(0) if rng is None else rng
     if ransac_subset is not None and refine and pts1.shape[0] > ransac_subset:
         sub = rng.choice(pts1.shape[0], ransac_subset, replace=False)
         pts1, pts2 = pts1[sub], pts2[sub]
     if method in ("ransac", "magsac"):
-        x1 = (np.concatenate([pts1, np.ones((len(pts1), 1))], 1) @ Kinv.T)[:, :2]
-        x2 = (np.concatenate([pts2, np.ones((len(pts2), 1))], 1) @ Kinv.T)[:, :2]
+        x1 = bearings(pts1, K)[:, :2]
+        x2 = bearings(pts2, K)[:, :2]
         flag = cv2.RANSAC if method == "ransac" else cv2.USAC_MAGSAC
         try:
             E, mask = cv2.findEssentialMat(
