@@ -55,6 +55,13 @@ class DepthCorrection:
         new, valid = self.apply(depth)
         return float(np.median(new[valid] / np.asarray(depth, dtype=np.float64)[valid])) if valid.any() else 1.0
 
+    def largest_change(self, depth: np.ndarray) -> float:
+        """The largest ``|log(corrected / original)|`` at the 2nd, 50th and 98th percentile of
+        ``depth`` ``(N,)`` (N >= 1, > 0); inf when one of them would end (corrected inverse depth <= 0)."""
+        d = np.percentile(np.asarray(depth, dtype=np.float64), [2, 50, 98])
+        shrink = self.a + self.b * d  # original / corrected depth
+        return float(np.max(np.abs(np.log(shrink)))) if np.all(shrink > 0) else float("inf")
+
 
 @dataclass(frozen=True)
 class PoseRevision:

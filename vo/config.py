@@ -350,6 +350,10 @@ class BackendConfig(_Section):
                                             "would change the depth of the keyframe's tracks (2nd to 98th "
                                             "percentile) by factors differing by more than this",
                                        range=_Range(1.0, lo_open=True))
+    depth_correction_min: float = _opt(0.1, "a depth correction is not applied when it would change no depth of the "
+                                            "keyframe's tracks (2nd, 50th, 98th percentile) by more than this "
+                                            "fraction (smaller ones are mostly the fit's noise; measured: README, "
+                                            "back-end)", range=_Range(0.0))
     concurrent: bool = _opt(True, "adjust each window in a worker process while the next frames are solved; "
                                   "the revision is applied at the next keyframe (the same final poses, less time "
                                   "per frame)")

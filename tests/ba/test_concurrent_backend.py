@@ -75,8 +75,9 @@ def test_a_run_that_fails_mid_way_stops_the_worker(drive, tmp_path, monkeypatch,
 def test_depth_correction_keeps_the_worker_and_its_poses_equal_to_blocking(long_drive, tmp_path, run_seq, mode):
     """The correction of the next keyframe's depth comes from the same adjusted points in both orders
     (``min_points`` 10: on this short drive 36-56 adjusted points reach each keyframe, fewer of them on
-    pixels with front-end depth)."""
-    args = ("backend.window=5", f"backend.depth_correction={mode}", "backend.min_points=10")
+    pixels with front-end depth; every correction applied, however small)."""
+    args = ("backend.window=5", f"backend.depth_correction={mode}", "backend.min_points=10",
+            "backend.depth_correction_min=0")
     doc_c, p_c = run_seq(long_drive, tmp_path / "c", *args)
     doc_b, p_b = run_seq(long_drive, tmp_path / "b", *args, "backend.concurrent=false")
     _, p_n = run_seq(long_drive, tmp_path / "n", "backend.window=5", "backend.min_points=10")
@@ -90,6 +91,18 @@ def test_depth_correction_keeps_the_worker_and_its_poses_equal_to_blocking(long_
         assert doc_c["backend"]["depth_spread_max"] > 1.0  # some offsets were corrected
     np.testing.assert_allclose(p_c, p_b, rtol=0, atol=1e-8)
     assert np.abs(p_c - p_n).max() > 1e-6  # the corrections did change the run
+
+
+def test_depth_corrections_below_the_minimum_change_are_counted_and_not_applied(long_drive, tmp_path, run_seq):
+    """``depth_correction_min``: a correction changing no depth of the keyframe by more than this
+    fraction is left out; with a minimum no correction reaches, the run is the one without corrections."""
+    base = ("backend.window=5", "backend.min_points=10")
+    doc_m, p_m = run_seq(long_drive, tmp_path / "m", *base, "backend.depth_correction=affine",
+                         "backend.depth_correction_min=10", "backend.concurrent=false")
+    _, p_n = run_seq(long_drive, tmp_path / "n", *base, "backend.concurrent=false")
+    be = doc_m["backend"]
+    assert be["depth_corrections"] == 0 and be["depth_corrections_small"] > 0
+    np.testing.assert_allclose(p_m, p_n, rtol=0, atol=1e-12)
 
 
 def test_the_worker_leaves_ctrl_c_to_the_run():

@@ -106,6 +106,21 @@ def test_revision_depth_correction_maps_the_keyframes_carried_inverse_depth():
         PoseRevision({7: T}, depth_correction={7: 0.5})
 
 
+def test_depth_correction_largest_change_is_over_the_ends_and_the_median_of_the_depths():
+    depth = np.linspace(1.0, 100.0, 1001)
+    # a rescale changes every depth alike: by 1 / a
+    np.testing.assert_allclose(DepthCorrection(0.5).largest_change(depth), np.log(2.0))
+    # 1 / d' = 1 / d + 0.01: d' / d = 1 / (1 + 0.01 d), largest at the 98th percentile (d = 98.02)
+    d98 = np.percentile(depth, 98)
+    np.testing.assert_allclose(DepthCorrection(1.0, 0.01).largest_change(depth), np.log1p(0.01 * d98))
+    # an offset that cancels a rescale at the median depth still changes the ends
+    d50 = np.percentile(depth, 50)
+    c = DepthCorrection(2.0, -1.0 / d50)  # a + b d = 1 at d50
+    expected = max(abs(np.log(2.0 - np.percentile(depth, q) / d50)) for q in (2, 98))
+    np.testing.assert_allclose(c.largest_change(depth), expected)
+    assert c.largest_change(depth) > 0.9
+
+
 def test_pnp_steps_get_their_own_translation_sigma():
     """Two-view steps: ``step_trans`` x their length; PnP / rotation-only steps (handed-on
     keyframes): ``step_trans_pnp`` x the larger of their length and the median two-view step."""

@@ -40,7 +40,7 @@ DEFAULTS = {
                 "huber_px": 1.0, "max_iterations": 5, "every": 2, "max_tracks": 250, "cell_px": 32, "track_texture_px": 9,
                 "track_fb_px": 1.0, "track_epi_px": 1.0, "outlier_px": 3.0, "min_points": 30, "step_factors": True,
                 "step_rot_deg": 0.05, "step_trans": 0.02, "step_trans_pnp": 1.0, "depth_correction": "none",
-                "depth_correction_max": 3.0,
+                "depth_correction_max": 3.0, "depth_correction_min": 0.1,
                 "concurrent": True, "max_shift": 0.5, "max_rotation_deg": 3.0,
                 "anchors": 2, "anchor_keep": 48, "anchor_revisit_ratio": 1.0, "anchor_max_angle_deg": 30.0,
                 "anchor_min_links": 40, "anchor_max_parallax_px": 100.0, "anchor_max_zoom": 1.25,

@@ -163,6 +163,7 @@ class WindowBackend:
         self.steps: dict[int, tuple[int, np.ndarray, bool]] = {}
         self.stats = {"solves": 0, "failures": 0, "rejected": 0, "skipped": 0, "revisions": 0, "tracks_ended": 0,
                       "track_resets": 0, "depth_corrections": 0, "depth_corrections_scale_only": 0,
+                      "depth_corrections_small": 0,
                       "unscored_births": 0, "anchored_windows": 0,
                       "anchor_links": 0, "anchor_tries": 0}
         self._ms: list[float] = []
@@ -530,7 +531,8 @@ class WindowBackend:
         ``T_world_k`` ``(4, 4)``, against the front-end's depth at their pixels. An affine
         correction that would change the depths of the keyframe's tracks (2nd to 98th
         percentile) by factors more than ``depth_correction_max`` apart is refused for a
-        scale-only one; None with fewer than ``min_points`` points."""
+        scale-only one; None with fewer than ``min_points`` points, or when the correction would
+        change none of those depths (2nd, 50th, 98th percentile) by more than ``depth_correction_min``."""
         from trianflow_vo.geometry.scale import fit_inverse_depth_affine
 
         c = self.cfg
@@ -570,6 +572,9 @@ class WindowBackend:
                 return None
             a, b = 1.0 / s, 0.0
         corr = DepthCorrection(a, b)
+        if corr.largest_change(keyframe.tracks.depth) < np.log1p(c.depth_correction_min):
+            self.stats["depth_corrections_small"] += 1
+            return None
         self.stats["depth_corrections"] += 1
         self._depth_factors.append(corr.median_factor(keyframe.tracks.depth))
         self._depth_spread.append(spread)
