@@ -346,9 +346,9 @@ class BackendConfig(_Section):
                 "inverse depths alike), shape = the same with the median depth kept (the front-end's scale), "
                 "scale = one factor, none = keep the front-end's depth (measured: affine better on 7-Scenes, "
                 "worse on KITTI 06 and the synthetic sequences; README, back-end)")
-    depth_correction_max: float = _opt(3.0, "an affine depth correction is refused for a scale-only one when it "
-                                            "would change the depth of the keyframe's tracks (2nd to 98th "
-                                            "percentile) by factors differing by more than this",
+    depth_correction_max: float = _opt(3.0, "an affine depth correction is refused for a scale-only one (shape: for "
+                                            "none) when it would change the depth of the keyframe's tracks (2nd to "
+                                            "98th percentile) by factors differing by more than this",
                                        range=_Range(1.0, lo_open=True))
     depth_correction_min: float = _opt(0.1, "a depth correction is not applied when it would change no depth of the "
                                             "keyframe's tracks (2nd, 50th, 98th percentile) by more than this "

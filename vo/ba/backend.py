@@ -162,7 +162,7 @@ class WindowBackend:
         # keyframe -> (its reference, front-end T_ref_cam, solved by two-view geometry)
         self.steps: dict[int, tuple[int, np.ndarray, bool]] = {}
         self.stats = {"solves": 0, "failures": 0, "rejected": 0, "skipped": 0, "revisions": 0, "tracks_ended": 0,
-                      "track_resets": 0, "depth_corrections": 0, "depth_corrections_scale_only": 0,
+                      "track_resets": 0, "depth_corrections": 0, "depth_corrections_refused": 0,
                       "depth_corrections_small": 0,
                       "unscored_births": 0, "anchored_windows": 0,
                       "anchor_links": 0, "anchor_tries": 0}
@@ -531,7 +531,7 @@ class WindowBackend:
         ``T_world_k`` ``(4, 4)``, against the front-end's depth at their pixels. An affine
         correction that would change the depths of the keyframe's tracks (2nd to 98th
         percentile) by factors more than ``depth_correction_max`` apart is refused for a
-        scale-only one; None with fewer than ``min_points`` points, or when the correction would
+        scale-only one (``shape``: for none); None with fewer than ``min_points`` points, or when the correction would
         change none of those depths (2nd, 50th, 98th percentile) by more than ``depth_correction_min``."""
         from trianflow_vo.geometry.scale import fit_inverse_depth_affine
 
@@ -555,8 +555,8 @@ class WindowBackend:
                 d = np.percentile(keyframe.tracks.depth, [2, 98])
                 f = 1.0 / (a + b * d)  # corrected / carried depth at the two ends
                 spread = float(f.max() / f.min()) if np.all(f > 0) else np.inf
-                if not spread <= c.depth_correction_max:
-                    self.stats["depth_corrections_scale_only"] += 1
+                if not spread <= c.depth_correction_max:  # affine: a rescale instead; shape: nothing
+                    self.stats["depth_corrections_refused"] += 1
                     valid, spread = False, 1.0
         else:
             valid = False
