@@ -55,12 +55,17 @@ class DepthCorrection:
         new, valid = self.apply(depth)
         return float(np.median(new[valid] / np.asarray(depth, dtype=np.float64)[valid])) if valid.any() else 1.0
 
-    def largest_change(self, depth: np.ndarray) -> float:
-        """The largest ``|log(corrected / original)|`` at the 2nd, 50th and 98th percentile of
-        ``depth`` ``(N,)`` (N >= 1, > 0); inf when one of them would end (corrected inverse depth <= 0)."""
+    def factors(self, depth: np.ndarray) -> np.ndarray:
+        """Corrected / original depth ``(3,)`` at the 2nd, 50th and 98th percentile of ``depth``
+        ``(N,)`` (N >= 1, > 0); inf where that depth would end (corrected inverse depth <= 0).
+        The map is monotonic in depth, so the outer two bound it over that range."""
         d = np.percentile(np.asarray(depth, dtype=np.float64), [2, 50, 98])
         shrink = self.a + self.b * d  # original / corrected depth
-        return float(np.max(np.abs(np.log(shrink)))) if np.all(shrink > 0) else float("inf")
+        return np.where(shrink > 0, 1.0 / np.where(shrink > 0, shrink, 1.0), np.inf)
+
+    def largest_change(self, depth: np.ndarray) -> float:
+        """The largest ``|log(corrected / original)|`` of :meth:`factors` (inf when a depth would end)."""
+        return float(np.max(np.abs(np.log(self.factors(depth)))))
 
 
 @dataclass(frozen=True)

@@ -119,6 +119,11 @@ def test_depth_correction_largest_change_is_over_the_ends_and_the_median_of_the_
     expected = max(abs(np.log(2.0 - np.percentile(depth, q) / d50)) for q in (2, 98))
     np.testing.assert_allclose(c.largest_change(depth), expected)
     assert c.largest_change(depth) > 0.9
+    np.testing.assert_allclose(DepthCorrection(0.5).factors(depth), [2.0, 2.0, 2.0])
+    # 1 / d' = 1 / d - 0.015: depths beyond 66.7 would end (the 98th percentile, not the median 50.5)
+    f = DepthCorrection(1.0, -0.015).factors(depth)
+    assert np.isfinite(f[:2]).all() and f[2] == np.inf
+    assert DepthCorrection(1.0, -0.015).largest_change(depth) == np.inf
 
 
 def test_pnp_steps_get_their_own_translation_sigma():

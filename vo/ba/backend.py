@@ -552,9 +552,8 @@ class WindowBackend:
         if c.depth_correction in ("affine", "shape"):
             (a, b), valid = fit_inverse_depth_affine(z_fe[ok], z_ba[ok], min_points=c.min_points)
             if valid and b != 0.0:
-                d = np.percentile(keyframe.tracks.depth, [2, 98])
-                f = 1.0 / (a + b * d)  # corrected / carried depth at the two ends
-                spread = float(f.max() / f.min()) if np.all(f > 0) else np.inf
+                f = DepthCorrection(a, b).factors(keyframe.tracks.depth)  # corrected / carried depth
+                spread = float(f.max() / f.min()) if np.all(np.isfinite(f)) else np.inf
                 if not spread <= c.depth_correction_max:  # affine: a rescale instead; shape: nothing
                     self.stats["depth_corrections_refused"] += 1
                     valid, spread = False, 1.0
