@@ -63,6 +63,12 @@ class DepthCorrection:
         shrink = self.a + self.b * d  # original / corrected depth
         return np.where(shrink > 0, 1.0 / np.where(shrink > 0, shrink, 1.0), np.inf)
 
+    def spread(self, depth: np.ndarray) -> float:
+        """How unlike a rescale it is over ``depth`` ``(N,)``: the ratio of the largest to the
+        smallest of :meth:`factors` (1 for a rescale; inf when a depth would end)."""
+        f = self.factors(depth)
+        return float(f.max() / f.min()) if np.all(np.isfinite(f)) else float("inf")
+
     def largest_change(self, depth: np.ndarray) -> float:
         """The largest ``|log(corrected / original)|`` of :meth:`factors` (inf when a depth would end)."""
         return float(np.max(np.abs(np.log(self.factors(depth)))))

@@ -124,6 +124,11 @@ def test_depth_correction_largest_change_is_over_the_ends_and_the_median_of_the_
     f = DepthCorrection(1.0, -0.015).factors(depth)
     assert np.isfinite(f[:2]).all() and f[2] == np.inf
     assert DepthCorrection(1.0, -0.015).largest_change(depth) == np.inf
+    # spread: 1 for a rescale, else the ratio of the factors at the two ends
+    assert DepthCorrection(0.5).spread(depth) == 1.0
+    np.testing.assert_allclose(DepthCorrection(1.0, 0.01).spread(depth),
+                               (1 + 0.01 * d98) / (1 + 0.01 * np.percentile(depth, 2)))
+    assert DepthCorrection(1.0, -0.015).spread(depth) == np.inf
 
 
 def test_pnp_steps_get_their_own_translation_sigma():

@@ -548,22 +548,19 @@ class WindowBackend:
         ok = (z_fe > 0) & (z_ba > 0)
         if ok.sum() < c.min_points:
             return None
-        spread = 1.0
+        depth = keyframe.tracks.depth
         if c.depth_correction in ("affine", "shape"):
             (a, b), valid = fit_inverse_depth_affine(z_fe[ok], z_ba[ok], min_points=c.min_points)
-            if valid and b != 0.0:
-                f = DepthCorrection(a, b).factors(keyframe.tracks.depth)  # corrected / carried depth
-                spread = float(f.max() / f.min()) if np.all(np.isfinite(f)) else np.inf
-                if not spread <= c.depth_correction_max:  # affine: a rescale instead; shape: nothing
-                    self.stats["depth_corrections_refused"] += 1
-                    valid, spread = False, 1.0
+            if valid and b != 0.0 and not DepthCorrection(a, b).spread(depth) <= c.depth_correction_max:
+                self.stats["depth_corrections_refused"] += 1  # affine: a rescale instead; shape: nothing
+                valid = False
         else:
             valid = False
         if c.depth_correction == "shape":
             if not valid or b == 0.0:
                 return None
             # the front-end's scale kept: the correction's median change of depth over the tracks is 1
-            m = DepthCorrection(a, b).median_factor(keyframe.tracks.depth)
+            m = DepthCorrection(a, b).median_factor(depth)
             a, b = a * m, b * m
         elif not valid:
             s = float(np.median(z_ba[ok] / z_fe[ok]))
@@ -571,10 +568,10 @@ class WindowBackend:
                 return None
             a, b = 1.0 / s, 0.0
         corr = DepthCorrection(a, b)
-        if corr.largest_change(keyframe.tracks.depth) < np.log1p(c.depth_correction_min):
+        if corr.largest_change(depth) < np.log1p(c.depth_correction_min):
             self.stats["depth_corrections_small"] += 1
             return None
         self.stats["depth_corrections"] += 1
-        self._depth_factors.append(corr.median_factor(keyframe.tracks.depth))
-        self._depth_spread.append(spread)
+        self._depth_factors.append(corr.median_factor(depth))
+        self._depth_spread.append(corr.spread(depth))
         return corr
