@@ -37,7 +37,9 @@ the same label are kept unless redone) and one section per invocation is appende
 the per-case ratios B/A of ATE and frames/s; it exits with status 1 when some case got
 worse (ATE ratio above ``--tolerance`` and by more than ``--min-diff`` points, in the
 median over seeds or in the worst seed, a frame
-outside the allowed branches where there was none, or a run that no longer completes).
+outside the allowed branches where there was none, or a run that no longer completes), or when
+it is higher seed by seed (a paired sign-flip test over the seeds both ran, ``--alpha`` and
+``--paired-ratio``; three seeds cannot show that, twelve can: ``--seeds 0,1,2,3,4,5,6,7,8,9,10,11``).
 """
 
 from __future__ import annotations
@@ -496,13 +498,56 @@ def _results_path(label_or_file: str) -> Path:
     return OUT / f"robustness-{label_or_file}.json"
 
 
+def paired_sign_flip_p(log_ratios: list[float], draws: int = 20000) -> float | None:
+    """Two-sided p-value that paired log error ratios ``log(B / A)`` (one per seed) centre on
+    zero: the share of sign flips whose mean is at least as far from zero as the observed one
+    (exact over all 2^n flips for n <= 16, else ``draws`` random flips, seeded). None for n < 2.
+    With n seeds the smallest possible p is 2 / 2^n: three seeds can never show a change
+    (0.25), twelve can (0.0005)."""
+    x = [float(v) for v in log_ratios]
+    n = len(x)
+    if n < 2:
+        return None
+    obs = abs(sum(x)) - 1e-12 * (1.0 + sum(abs(v) for v in x))  # ties count as extreme
+    if n <= 16:
+        hits = sum(1 for mask in range(1 << n)
+                   if abs(sum(v if (mask >> i) & 1 else -v for i, v in enumerate(x))) >= obs)
+        return hits / float(1 << n)
+    import random
+    rng = random.Random(0)
+    hits = sum(1 for _ in range(draws) if abs(sum(v if rng.random() < 0.5 else -v for v in x)) >= obs)
+    return (hits + 1) / (draws + 1)
+
+
+def _per_seed_error(case: dict) -> dict[int, float]:
+    """Seed -> the case's error (ATE % or rotation degrees) of each completed run with one."""
+    out = {}
+    for r in case.get("runs") or []:
+        e = r.get("ate_pct", r.get("rot_err_max_deg"))
+        if r.get("status") == "completed" and e is not None and e > 0 and r.get("seed") is not None:
+            out[int(r["seed"])] = float(e)
+    return out
+
+
+def paired(case_a: dict, case_b: dict) -> tuple[int, int, float | None, float | None]:
+    """The seeds both tables ran: ``(n, B lower in how many, geometric-mean ratio B/A, p)``
+    (:func:`paired_sign_flip_p`)."""
+    ea, eb = _per_seed_error(case_a), _per_seed_error(case_b)
+    seeds = sorted(set(ea) & set(eb))
+    if not seeds:
+        return 0, 0, None, None
+    lr = [math.log(eb[s] / ea[s]) for s in seeds]
+    return len(seeds), sum(1 for v in lr if v < 0), math.exp(sum(lr) / len(lr)), paired_sign_flip_p(lr)
+
+
 def _key_error(a: dict) -> tuple[str, float | None]:
     if "ate_pct" in a:
         return "ATE %", a.get("ate_pct")
     return "rot deg", a.get("rot_err_max_deg")
 
 
-def compare(label_a: str, label_b: str, tolerance: float, min_diff: float) -> tuple[str, int]:
+def compare(label_a: str, label_b: str, tolerance: float, min_diff: float, alpha: float = 0.05,
+            paired_ratio: float = 1.05) -> tuple[str, int]:
     pa, pb = _results_path(label_a), _results_path(label_b)
     A = json.loads(pa.read_text())
     B = json.loads(pb.read_text())
@@ -513,7 +558,10 @@ def compare(label_a: str, label_b: str, tolerance: float, min_diff: float) -> tu
              f"- A: `{pa.name}` (args `{A['meta'].get('args', '')}`); B: `{pb.name}` (args "
              f"`{B['meta'].get('args', '')}`); worse = error ratio > {tolerance:g} and by more than "
              f"{min_diff:g} (points of ATE % or degrees), the same for the worst seed, a frame outside "
-             "the expected branches where A had none, or fewer completed runs.", ""]
+             "the expected branches where A had none, or fewer completed runs; also when, over the seeds both "
+             f"ran, B's error is higher by a geometric-mean ratio above {paired_ratio:g} with a paired sign-flip "
+             f"p below {alpha:g} (*paired*: seeds where B is lower / seeds, ratio, p; three seeds cannot reach "
+             "p < 0.25, twelve can).", ""]
     ca, cb = A["meta"].get("cpu"), B["meta"].get("cpu")
     if (ca or cb) and ca != cb:
         lines[-1:-1] = [f"- **A and B were measured on different CPUs** (A: {ca or 'not recorded'}; B: "
@@ -521,8 +569,8 @@ def compare(label_a: str, label_b: str, tolerance: float, min_diff: float) -> tu
                         "floating-point kernels differ and the chaotic clips amplify it): what differs here "
                         "is not the code's doing alone."]
     lines.append("| case | metric | A | B | B/A | worst seed A | worst seed B | fps A | fps B | fps B/A | allowed A | "
-                 "allowed B | verdict |")
-    lines.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+                 "allowed B | paired | verdict |")
+    lines.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     worse = 0
     for i in ids:
         a, b = A["cases"][i]["summary"], B["cases"][i]["summary"]
@@ -544,6 +592,10 @@ def compare(label_a: str, label_b: str, tolerance: float, min_diff: float) -> tu
             verdict.append("branches")
         if b.get("n_completed", 0) < a.get("n_completed", 0):
             verdict.append("runs failed")
+        n, lower, gm, p = paired(A["cases"][i], B["cases"][i])
+        if p is not None and p < alpha and gm > paired_ratio:
+            verdict.append("worse paired")
+        pair = "n/a" if gm is None else f"{lower}/{n}, {gm:.2f}" + ("" if p is None else f", p {p:.3g}")
         if verdict:
             worse += 1
         allowed = (lambda s: "n/a" if s.get("all_allowed_runs") is None
@@ -551,7 +603,7 @@ def compare(label_a: str, label_b: str, tolerance: float, min_diff: float) -> tu
         lines.append(f"| {i} | {metric} | {_f(ea, '{:.3f}')} | {_f(eb, '{:.3f}')} | {_f(ratio)} | "
                      f"{_f(wa, '{:.3f}')} | {_f(wb, '{:.3f}')} | {_f(a.get('fps'), '{:.1f}')} | "
                      f"{_f(b.get('fps'), '{:.1f}')} | {_f(fr)} | {allowed(a)} | "
-                     f"{allowed(b)} | {'**' + ', '.join(verdict) + '**' if verdict else 'ok'} |")
+                     f"{allowed(b)} | {pair} | {'**' + ', '.join(verdict) + '**' if verdict else 'ok'} |")
     lines.append("")
     if only_a or only_b:
         lines.append(f"Not compared (in one file only): A {', '.join(only_a) or '-'}; B {', '.join(only_b) or '-'}.")
@@ -596,6 +648,10 @@ def main(argv=None) -> int:
     ap.add_argument("--tolerance", type=float, default=1.10, help="--compare: worse when B/A error exceeds this")
     ap.add_argument("--min-diff", type=float, default=0.02,
                     help="--compare: ...and B exceeds A by more than this (ATE %% points or degrees)")
+    ap.add_argument("--alpha", type=float, default=0.05,
+                    help="--compare: worse also when, paired by seed, B is higher with a sign-flip p below this...")
+    ap.add_argument("--paired-ratio", type=float, default=1.05,
+                    help="--compare: ...and a geometric-mean error ratio B/A above this")
     ap.add_argument("--no-md", action="store_true", help="do not append to --md")
     ap.add_argument("--eval-worker", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -606,7 +662,7 @@ def main(argv=None) -> int:
 
     if args.compare:
         try:
-            text, worse = compare(*args.compare, args.tolerance, args.min_diff)
+            text, worse = compare(*args.compare, args.tolerance, args.min_diff, args.alpha, args.paired_ratio)
         except (OSError, ValueError, KeyError) as exc:
             print(f"error: cannot compare: {exc}", file=sys.stderr)
             return 2
