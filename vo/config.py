@@ -341,15 +341,21 @@ class BackendConfig(_Section):
                                       "handed-on keyframe), as a fraction of the window's median two-view step "
                                       "(or of its own length when larger)", range=_Range(0.0, lo_open=True))
     depth_correction: Literal["none", "affine", "shape", "scale"] = _opt(
-        "none", "correct the carried depth of the keyframe after an adjustment to the adjusted points seen in it: "
-                "affine = an affine map of inverse depth (a two-view step's small rotation error shifts all "
-                "inverse depths alike), shape = the same with the median depth kept (the front-end's scale), "
-                "scale = one factor, none = keep the front-end's depth (measured: affine better on 7-Scenes, "
-                "worse on KITTI 06 and the synthetic sequences; README, back-end)")
-    depth_correction_max: float = _opt(3.0, "an affine depth correction is refused for a scale-only one (shape: for "
+        "shape", "correct the carried depth of the keyframe after an adjustment to the adjusted points seen in it: "
+                 "shape = an affine map of inverse depth (a two-view step's small rotation error shifts all "
+                 "inverse depths alike) with the median depth kept (the front-end's scale), affine = the same "
+                 "map with its scale, scale = one factor, none = keep the front-end's depth (measured, seeds "
+                 "0-11: shape better than none on KITTI 07 and 7-Scenes stride 3, teddy as it was; affine "
+                 "worse on the unseen clips; README, back-end)")
+    depth_correction_max: float = _opt(1.5, "an affine depth correction is refused for a scale-only one (shape: for "
                                             "none) when it would change the depth of the keyframe's tracks (2nd to "
-                                            "98th percentile) by factors differing by more than this",
+                                            "98th percentile) by factors differing by more than this (larger ones "
+                                            "rest on the few far points of a near scene)",
                                        range=_Range(1.0, lo_open=True))
+    depth_correction_t: float = _opt(3.0, "an affine or shape correction's offset of inverse depth is kept only when "
+                                          "it lies at least this many standard errors from zero (its fit's "
+                                          "residuals); else affine falls back to a rescale and shape makes none; "
+                                          "0 = off", range=_Range(0.0))
     depth_correction_min: float = _opt(0.1, "a depth correction is not applied when it would change no depth of the "
                                             "keyframe's tracks (2nd, 50th, 98th percentile) by more than this "
                                             "fraction (smaller ones are mostly the fit's noise; measured: README, "

@@ -80,7 +80,8 @@ def test_depth_correction_keeps_the_worker_and_its_poses_equal_to_blocking(long_
             "backend.depth_correction_min=0")
     doc_c, p_c = run_seq(long_drive, tmp_path / "c", *args)
     doc_b, p_b = run_seq(long_drive, tmp_path / "b", *args, "backend.concurrent=false")
-    _, p_n = run_seq(long_drive, tmp_path / "n", "backend.window=5", "backend.min_points=10")
+    _, p_n = run_seq(long_drive, tmp_path / "n", "backend.window=5", "backend.min_points=10",
+                     "backend.depth_correction=none")
     assert doc_c["backend"]["concurrent"] is True and doc_b["backend"]["concurrent"] is False
     assert doc_c["backend"]["depth_corrections"] > 0
     assert doc_c["backend"]["depth_corrections"] == doc_b["backend"]["depth_corrections"]
@@ -99,10 +100,26 @@ def test_depth_corrections_below_the_minimum_change_are_counted_and_not_applied(
     base = ("backend.window=5", "backend.min_points=10")
     doc_m, p_m = run_seq(long_drive, tmp_path / "m", *base, "backend.depth_correction=affine",
                          "backend.depth_correction_min=10", "backend.concurrent=false")
-    _, p_n = run_seq(long_drive, tmp_path / "n", *base, "backend.concurrent=false")
+    _, p_n = run_seq(long_drive, tmp_path / "n", *base, "backend.depth_correction=none", "backend.concurrent=false")
     be = doc_m["backend"]
     assert be["depth_corrections"] == 0 and be["depth_corrections_small"] > 0
     np.testing.assert_allclose(p_m, p_n, rtol=0, atol=1e-12)
+
+
+def test_depth_corrections_with_an_insignificant_offset_are_counted_and_not_applied(long_drive, tmp_path, run_seq):
+    """``depth_correction_t``: ``shape`` makes no correction whose offset of inverse depth lies fewer
+    standard errors from zero than this; with a bar no fit reaches, the run is the one without
+    corrections, and with none every fit that passes the minimum is applied."""
+    base = ("backend.window=5", "backend.min_points=10", "backend.depth_correction=shape",
+            "backend.depth_correction_min=0", "backend.depth_correction_max=3", "backend.concurrent=false")
+    doc_t, p_t = run_seq(long_drive, tmp_path / "t", *base, "backend.depth_correction_t=1e9")
+    doc_0, p_0 = run_seq(long_drive, tmp_path / "0", *base, "backend.depth_correction_t=0")
+    _, p_n = run_seq(long_drive, tmp_path / "n", "backend.window=5", "backend.min_points=10",
+                     "backend.depth_correction=none", "backend.concurrent=false")
+    assert doc_t["backend"]["depth_corrections"] == 0 and doc_t["backend"]["depth_corrections_insignificant"] > 0
+    np.testing.assert_allclose(p_t, p_n, rtol=0, atol=1e-12)
+    assert doc_0["backend"]["depth_corrections_insignificant"] == 0 and doc_0["backend"]["depth_corrections"] > 0
+    assert np.abs(p_0 - p_n).max() > 1e-6
 
 
 def test_the_worker_leaves_ctrl_c_to_the_run():

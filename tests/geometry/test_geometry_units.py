@@ -12,7 +12,7 @@ from trianflow_vo.flow.masks import fb_distance, flow_scores, occlusion_mask, ra
 from trianflow_vo.camera import unproject as backproject
 from trianflow_vo.geometry.pnp import solve_pnp
 from trianflow_vo.geometry.rotation import fit_rotation
-from trianflow_vo.geometry.scale import align_scale, fit_inverse_depth_affine, weighted_median
+from trianflow_vo.geometry.scale import align_scale, fit_inverse_depth_affine, inverse_depth_offset_t, weighted_median
 from trianflow_vo.geometry.se3 import rodrigues, rotation_angle
 
 
@@ -70,6 +70,41 @@ def test_inverse_depth_affine_without_depth_spread_is_a_scale():
     assert fit_inverse_depth_affine(np.ones(5), np.ones(5), min_points=10)[1] is False
     with pytest.raises(ValueError):
         fit_inverse_depth_affine(np.ones(3), np.ones(4))
+
+
+def test_inverse_depth_offset_t_standard_error_matches_the_scatter_of_fits():
+    """Known answer by Monte Carlo: over many noisy draws of the same scene, the spread of the
+    fitted offset b / a is the standard error the t statistic divides by; with no offset |t| is
+    mostly under 2, with one of ten standard errors it is about 10."""
+    rng = np.random.default_rng(5)
+    z_true = rng.uniform(1.0, 10.0, 60)
+    sigma = 4e-3
+
+    def draw(b0):
+        z_est = 1.0 / (1.0 / z_true - b0 + rng.normal(0, sigma, z_true.size))
+        (a, b), ok = fit_inverse_depth_affine(z_est, z_true, min_points=10)
+        t, t_ok = inverse_depth_offset_t(z_est, z_true, a, b)
+        assert ok and t_ok
+        return b / a, t
+
+    zero = np.array([draw(0.0) for _ in range(400)])
+    se_empirical = zero[:, 0].std()
+    se_claimed = np.median(np.abs(zero[:, 0] / zero[:, 1]))
+    assert se_claimed == pytest.approx(se_empirical, rel=0.2)
+    assert np.mean(np.abs(zero[:, 1]) < 2) > 0.9
+    big = np.array([draw(10 * se_empirical) for _ in range(100)])
+    assert 7 < np.median(big[:, 1]) < 13
+
+
+def test_inverse_depth_offset_t_edge_cases():
+    z = np.linspace(1.0, 5.0, 20)
+    assert inverse_depth_offset_t(z, z, 1.0, 0.0) == (0.0, True)  # exact fit, no offset
+    t, ok = inverse_depth_offset_t(z, 1.0 / (1.0 / z + 0.1), 1.0, 0.1)
+    assert ok and t > 1e6  # an exact fit with an offset: certain (up to rounding)
+    assert inverse_depth_offset_t(z[:2], z[:2], 1.0, 0.0)[1] is False
+    assert inverse_depth_offset_t(z, z, -1.0, 0.0)[1] is False
+    with pytest.raises(ValueError):
+        inverse_depth_offset_t(np.ones(3), np.ones(4), 1.0, 0.0)
 
 
 def test_pnp_exact_and_with_outliers():

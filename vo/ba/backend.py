@@ -20,6 +20,10 @@ On every new keyframe:
    the camera later keeps only part of that depth (the far points of a turn), a rescale
    of the whole becomes a jump of scale. The window, seeing each point from several
    keyframes, measures the offset; the correction removes it before it is handed on.
+   By default (``shape``) the median depth is kept (the front-end's scale), and a
+   correction is made only when its offset is significant (``depth_correction_t``
+   standard errors), it changes some depth by more than ``depth_correction_min`` and it
+   changes the near and far depths by factors at most ``depth_correction_max`` apart.
 
 With ``backend.concurrent`` (the default) step 2 runs in a worker process
 (:mod:`~trianflow_vo.ba.worker`; GTSAM holds the interpreter lock, so a thread
@@ -163,7 +167,7 @@ class WindowBackend:
         self.steps: dict[int, tuple[int, np.ndarray, bool]] = {}
         self.stats = {"solves": 0, "failures": 0, "rejected": 0, "skipped": 0, "revisions": 0, "tracks_ended": 0,
                       "track_resets": 0, "depth_corrections": 0, "depth_corrections_refused": 0,
-                      "depth_corrections_small": 0,
+                      "depth_corrections_small": 0, "depth_corrections_insignificant": 0,
                       "unscored_births": 0, "anchored_windows": 0,
                       "anchor_links": 0, "anchor_tries": 0}
         self._ms: list[float] = []
@@ -249,7 +253,8 @@ class WindowBackend:
             **self.stats,
             "ms_total": float(np.sum(self._ms)) if self._ms else 0.0, "ms_median": med(self._ms),
             "points_median": med(self._points), "factors_median": med(self._factors),
-            "depth_correction": c.depth_correction,
+            "depth_correction": c.depth_correction, "depth_correction_max": c.depth_correction_max,
+            "depth_correction_t": c.depth_correction_t, "depth_correction_min": c.depth_correction_min,
             "depth_factor_median": med(self._depth_factors),
             "depth_spread_median": med(self._depth_spread), "depth_spread_max": max(self._depth_spread, default=None),
             "worker_peak_rss_mb": self._worker_rss_mb,
@@ -531,9 +536,11 @@ class WindowBackend:
         ``T_world_k`` ``(4, 4)``, against the front-end's depth at their pixels. An affine
         correction that would change the depths of the keyframe's tracks (2nd to 98th
         percentile) by factors more than ``depth_correction_max`` apart is refused for a
-        scale-only one (``shape``: for none); None with fewer than ``min_points`` points, or when the correction would
+        scale-only one (``shape``: for none), and so is one whose offset of inverse depth lies fewer than
+        ``depth_correction_t`` standard errors from zero (:func:`~trianflow_vo.geometry.scale.inverse_depth_offset_t`);
+        None with fewer than ``min_points`` points, or when the correction would
         change none of those depths (2nd, 50th, 98th percentile) by more than ``depth_correction_min``."""
-        from trianflow_vo.geometry.scale import fit_inverse_depth_affine
+        from trianflow_vo.geometry.scale import fit_inverse_depth_affine, inverse_depth_offset_t
 
         c = self.cfg
         ids, uv = self.tracks.obs.get(keyframe.index, (np.zeros(0, np.int64), np.zeros((0, 2))))
@@ -554,6 +561,11 @@ class WindowBackend:
             if valid and b != 0.0 and not DepthCorrection(a, b).spread(depth) <= c.depth_correction_max:
                 self.stats["depth_corrections_refused"] += 1  # affine: a rescale instead; shape: nothing
                 valid = False
+            if valid and b != 0.0 and c.depth_correction_t > 0:
+                t, t_ok = inverse_depth_offset_t(z_fe[ok], z_ba[ok], a, b)
+                if not (t_ok and abs(t) >= c.depth_correction_t):
+                    self.stats["depth_corrections_insignificant"] += 1  # as refused: a rescale / nothing
+                    valid = False
         else:
             valid = False
         if c.depth_correction == "shape":

@@ -135,3 +135,46 @@ def fit_inverse_depth_affine(
         w = np.minimum(1.0, huber_k * s / np.maximum(r, 1e-300))
     a, b = float(a), float(b)
     return (a, b), bool(np.isfinite(a) and np.isfinite(b) and a > 0)
+
+
+def inverse_depth_offset_t(
+    depth_est: np.ndarray, depth_ref: np.ndarray, a: float, b: float, huber_k: float = 1.5,
+) -> tuple[float, bool]:
+    """How many standard errors the offset of a fitted map ``1 / depth_ref ~ a / depth_est + b``
+    (:func:`fit_inverse_depth_affine`) lies from zero: ``(b / a) / se(b / a)``.
+
+    The standard error comes from the Huber-weighted normal equations of the fit (threshold
+    ``huber_k`` x the residuals' scaled median absolute deviation, as in the fit), the
+    residuals taken as independent. A large ``|t|`` says the points hold an offset of inverse
+    depth; a small one that the offset is the fit's noise.
+
+    Args:
+        depth_est, depth_ref: ``(N,)`` the depths the map was fitted to (> 0; others are ignored).
+        a, b: the fitted map (``a > 0``).
+
+    Returns:
+        ``(t, valid)``; not valid with fewer than 3 usable pairs, a degenerate system or ``a <= 0``.
+    """
+    z = np.asarray(depth_est, dtype=np.float64)
+    d = np.asarray(depth_ref, dtype=np.float64)
+    if z.shape != d.shape or z.ndim != 1:
+        raise ValueError(f"depth_est and depth_ref must both be (N,), got {z.shape}, {d.shape}")
+    ok = np.isfinite(z) & np.isfinite(d) & (z > 0) & (d > 0)
+    if ok.sum() < 3 or not (np.isfinite(a) and np.isfinite(b) and a > 0):
+        return 0.0, False
+    u, v = 1.0 / z[ok], 1.0 / d[ok]
+    r = v - a * u - b
+    s = 1.4826 * float(np.median(np.abs(r)))
+    if s <= 0:  # an exact fit: any offset is certain
+        return (float("inf") if b != 0 else 0.0), True
+    w = np.minimum(1.0, huber_k * s / np.maximum(np.abs(r), 1e-300))
+    X = np.stack([u, np.ones_like(u)], axis=1)
+    N = X.T @ (w[:, None] * X)
+    if not np.linalg.cond(N) < 1e12:
+        return 0.0, False
+    cov = s * s * np.linalg.inv(N)
+    g = np.array([-b / a**2, 1.0 / a])  # d(b/a) / d(a, b)
+    se = float(np.sqrt(max(g @ cov @ g, 0.0)))
+    if se <= 0:
+        return 0.0, False
+    return float((b / a) / se), True
