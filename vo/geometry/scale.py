@@ -86,6 +86,25 @@ def fit_scale_ransac(
     return s, s > 0
 
 
+def _inverse_depth_pairs(depth_est: np.ndarray, depth_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(u, v)``: the inverse depths ``(M,)`` of the pairs of ``(N,)`` depths that are both finite and > 0."""
+    z = np.asarray(depth_est, dtype=np.float64)
+    d = np.asarray(depth_ref, dtype=np.float64)
+    if z.shape != d.shape or z.ndim != 1:
+        raise ValueError(f"depth_est and depth_ref must both be (N,), got {z.shape}, {d.shape}")
+    ok = np.isfinite(z) & np.isfinite(d) & (z > 0) & (d > 0)
+    return 1.0 / z[ok], 1.0 / d[ok]
+
+
+def _huber_weights(abs_residuals: np.ndarray, huber_k: float) -> tuple[float, np.ndarray | None]:
+    """``(s, w)``: the residuals' scaled median absolute deviation and the Huber weights ``(M,)`` at
+    the threshold ``huber_k * s``; ``w`` is None when ``s`` is 0 (an exact fit)."""
+    s = 1.4826 * float(np.median(abs_residuals))
+    if s <= 0:
+        return s, None
+    return s, np.minimum(1.0, huber_k * s / np.maximum(abs_residuals, 1e-300))
+
+
 def fit_inverse_depth_affine(
     depth_est: np.ndarray, depth_ref: np.ndarray, min_points: int = 10, min_spread: float = 0.1,
     iters: int = 10, huber_k: float = 1.5,
@@ -111,14 +130,9 @@ def fit_inverse_depth_affine(
     Returns:
         ``((a, b), valid)``; not valid also when the fitted ``a`` is not positive.
     """
-    z = np.asarray(depth_est, dtype=np.float64)
-    d = np.asarray(depth_ref, dtype=np.float64)
-    if z.shape != d.shape or z.ndim != 1:
-        raise ValueError(f"depth_est and depth_ref must both be (N,), got {z.shape}, {d.shape}")
-    ok = np.isfinite(z) & np.isfinite(d) & (z > 0) & (d > 0)
-    if ok.sum() < min_points:
+    u, v = _inverse_depth_pairs(depth_est, depth_ref)
+    if u.size < min_points:
         return (1.0, 0.0), False
-    u, v = 1.0 / z[ok], 1.0 / d[ok]
     p10, p50, p90 = np.percentile(u, [10, 50, 90])
     scale_only = (float(np.median(v / u)), 0.0)
     if (p90 - p10) < min_spread * p50:
@@ -128,11 +142,9 @@ def fit_inverse_depth_affine(
     for _ in range(max(1, iters)):
         sw = np.sqrt(w)
         (a, b), *_ = np.linalg.lstsq(np.stack([u * sw, sw], axis=1), v * sw, rcond=None)
-        r = np.abs(v - a * u - b)
-        s = 1.4826 * float(np.median(r))
-        if s <= 0:
+        _, w = _huber_weights(np.abs(v - a * u - b), huber_k)
+        if w is None:
             break
-        w = np.minimum(1.0, huber_k * s / np.maximum(r, 1e-300))
     a, b = float(a), float(b)
     return (a, b), bool(np.isfinite(a) and np.isfinite(b) and a > 0)
 
@@ -155,19 +167,12 @@ def inverse_depth_offset_t(
     Returns:
         ``(t, valid)``; not valid with fewer than 3 usable pairs, a degenerate system or ``a <= 0``.
     """
-    z = np.asarray(depth_est, dtype=np.float64)
-    d = np.asarray(depth_ref, dtype=np.float64)
-    if z.shape != d.shape or z.ndim != 1:
-        raise ValueError(f"depth_est and depth_ref must both be (N,), got {z.shape}, {d.shape}")
-    ok = np.isfinite(z) & np.isfinite(d) & (z > 0) & (d > 0)
-    if ok.sum() < 3 or not (np.isfinite(a) and np.isfinite(b) and a > 0):
+    u, v = _inverse_depth_pairs(depth_est, depth_ref)
+    if u.size < 3 or not (np.isfinite(a) and np.isfinite(b) and a > 0):
         return 0.0, False
-    u, v = 1.0 / z[ok], 1.0 / d[ok]
-    r = v - a * u - b
-    s = 1.4826 * float(np.median(np.abs(r)))
-    if s <= 0:  # an exact fit: any offset is certain
+    s, w = _huber_weights(np.abs(v - a * u - b), huber_k)
+    if w is None:  # an exact fit: any offset is certain
         return (float("inf") if b != 0 else 0.0), True
-    w = np.minimum(1.0, huber_k * s / np.maximum(np.abs(r), 1e-300))
     X = np.stack([u, np.ones_like(u)], axis=1)
     N = X.T @ (w[:, None] * X)
     if not np.linalg.cond(N) < 1e12:
