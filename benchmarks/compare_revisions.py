@@ -10,15 +10,21 @@ The old revision must be from before the rename to ``trianflow_vo`` (it is run
 as ``python -m cli.main`` from its worktree); the new one is this checkout's
 installed ``trianflow-vo``.
 
+With ``--old-args`` no revision is checked out: *old* is this checkout run with those
+extra arguments (e.g. a previous default restored with ``--set``), *new* is it with
+``--new-args`` (default none), and the table goes to ``--md`` (default: stdout only).
+
 Usage (from the repository root, with the project installed)::
 
     python benchmarks/compare_revisions.py [--rev 5e04a6f] [--repeats 3] [--data ../shared/data]
+    python benchmarks/compare_revisions.py --old-args "--set runtime.blas_threads=2" --md /tmp/ab.md
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import shutil
 import statistics
 import subprocess
@@ -52,8 +58,16 @@ def main() -> None:
     ap.add_argument("--rev", default="5e04a6f")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
-    ap.add_argument("--md", type=Path, default=REPO / "benchmarks" / "HOUSE.md")
+    ap.add_argument("--md", type=Path, default=None, help="markdown table (default: benchmarks/HOUSE.md when "
+                    "comparing revisions, none with --old-args)")
+    ap.add_argument("--old-args", default=None, help="compare this checkout with these extra run arguments "
+                    "(old) against --new-args (new) instead of a revision")
+    ap.add_argument("--new-args", default="")
     args = ap.parse_args()
+    if args.old_args is not None:
+        _compare_args(args)
+        return
+    args.md = args.md or REPO / "benchmarks" / "HOUSE.md"
     tmp = Path(tempfile.mkdtemp(prefix="compare-"))
     old = tmp / "old"
     subprocess.run(["git", "worktree", "add", "--detach", str(old), args.rev], cwd=REPO, check=True,
@@ -61,37 +75,71 @@ def main() -> None:
     try:
         if "trianflow_vo" in (old / "pyproject.toml").read_text():
             raise SystemExit(f"{args.rev} already uses the trianflow_vo layout; pick an earlier revision")
-        rows = []
-        for name, (folder, extra) in CASES.items():
-            seq = str(args.data / folder)
-            fps = {"old": [], "new": []}
-            same = True
-            for r in range(args.repeats):
-                o = _run([sys.executable, "-m", "cli.main", "run", seq, *extra], old, tmp / "o")
-                n = _run(["trianflow-vo", "run", seq, *extra], REPO, tmp / "n")
-                fps["old"].append(o["fps"])
-                fps["new"].append(n["fps"])
-                same &= (tmp / "o" / "poses.txt").read_bytes() == (tmp / "n" / "poses.txt").read_bytes()
-            mo, mn = statistics.median(fps["old"]), statistics.median(fps["new"])
-            rows.append((name, same, mo, mn, mn / mo))
-            print(f"{name}: poses {'identical' if same else 'DIFFER'}, frames/s old {mo:.1f} new {mn:.1f} "
-                  f"(x{mn / mo:.2f})", flush=True)
+        rows = _alternate(args, tmp, lambda seq, extra: ([sys.executable, "-m", "cli.main", "run", seq, *extra], old),
+                          lambda seq, extra: (["trianflow-vo", "run", seq, *extra], REPO))
         head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
                               text=True).stdout.strip()
-        lines = [f"# Working tree (on {head}) against {args.rev}: poses and speed",
-                 "",
-                 f"`python benchmarks/compare_revisions.py --rev {args.rev} --repeats {args.repeats}`; seed 0, "
-                 "2 threads, old and new runs alternated; frames/s is the median over the repeats "
-                 "(end to end, decoding included).",
-                 "",
-                 "| case | poses.txt | old frames/s | new frames/s | new / old |",
-                 "|---|---|---:|---:|---:|"]
-        lines += [f"| {n} | {'byte-identical' if s else '**differ**'} | {a:.1f} | {b:.1f} | {r:.2f} |"
-                  for n, s, a, b, r in rows]
-        args.md.write_text("\n".join(lines) + "\n")
-        print(f"wrote {args.md}")
+        _write_md(args.md, f"Working tree (on {head}) against {args.rev}",
+                  f"python benchmarks/compare_revisions.py --rev {args.rev} --repeats {args.repeats}", rows)
     finally:
         subprocess.run(["git", "worktree", "remove", "--force", str(old)], cwd=REPO, capture_output=True)
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _alternate(args, tmp: Path, old_cmd, new_cmd) -> list[tuple]:
+    """Every case run ``args.repeats`` times with the old and the new command in turn: rows
+    ``(name, poses byte-identical, old median frames/s, new median frames/s, new / old)``.
+    ``old_cmd(seq, extra)`` / ``new_cmd(seq, extra)`` give ``(command, working folder)``."""
+    rows = []
+    for name, (folder, extra) in CASES.items():
+        seq = str(args.data / folder)
+        fps = {"old": [], "new": []}
+        same = True
+        for _ in range(args.repeats):
+            o = _run(*old_cmd(seq, extra), tmp / "o")
+            n = _run(*new_cmd(seq, extra), tmp / "n")
+            fps["old"].append(o["fps"])
+            fps["new"].append(n["fps"])
+            same &= (tmp / "o" / "poses.txt").read_bytes() == (tmp / "n" / "poses.txt").read_bytes()
+        mo, mn = statistics.median(fps["old"]), statistics.median(fps["new"])
+        rows.append((name, same, mo, mn, mn / mo))
+        print(f"{name}: poses {'identical' if same else 'DIFFER'}, frames/s old {mo:.1f} new {mn:.1f} "
+              f"(x{mn / mo:.2f})", flush=True)
+    return rows
+
+
+def _write_md(path: Path | None, title: str, command: str, rows: list[tuple]) -> None:
+    lines = [f"# {title}: poses and speed",
+             "",
+             f"`{command}`; seed 0, 2 threads, old and new runs alternated; frames/s is the median over the "
+             "repeats (end to end, decoding included).",
+             "",
+             "| case | poses.txt | old frames/s | new frames/s | new / old |",
+             "|---|---|---:|---:|---:|"]
+    lines += [f"| {n} | {'byte-identical' if s else '**differ**'} | {a:.1f} | {b:.1f} | {r:.2f} |"
+              for n, s, a, b, r in rows]
+    if path is not None:
+        path.write_text("\n".join(lines) + "\n")
+        print(f"wrote {path}")
+    else:
+        print("\n".join(lines))
+
+
+def _compare_args(args) -> None:
+    """This checkout with ``--old-args`` (old) against it with ``--new-args`` (new), alternated."""
+    old_extra, new_extra = shlex.split(args.old_args), shlex.split(args.new_args)
+    tmp = Path(tempfile.mkdtemp(prefix="compare-"))
+    try:
+        rows = _alternate(args, tmp, lambda seq, extra: (["trianflow-vo", "run", seq, *extra, *old_extra], REPO),
+                          lambda seq, extra: (["trianflow-vo", "run", seq, *extra, *new_extra], REPO))
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
+                              text=True).stdout.strip()
+        cmd = f"python benchmarks/compare_revisions.py --old-args {shlex.quote(args.old_args)}"
+        if args.new_args:
+            cmd += f" --new-args {shlex.quote(args.new_args)}"
+        _write_md(args.md, f"Working tree (on {head}): `{args.new_args or 'defaults'}` against "
+                  f"`{args.old_args}`", f"{cmd} --repeats {args.repeats}", rows)
+    finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
 

@@ -151,11 +151,12 @@ class NoBackend:
 
 
 def make_backend(config: BackendConfig, K: np.ndarray | None = None, size_hw: tuple[int, int] | None = None,
-                 warn=None) -> Backend:
+                 warn=None, blas_threads: int | None = None) -> Backend:
     """The back-end the ``backend`` section names: :class:`NoBackend` for ``kind: none`` or
     ``window: 0``, else the windowed bundle adjustment
     (:class:`~trianflow_vo.ba.backend.WindowBackend`, needs the working ``K`` and ``size_hw``;
-    ``warn(kind, message)`` receives its failures)."""
+    ``warn(kind, message)`` receives its failures; ``blas_threads``: NumPy's BLAS threads in its
+    worker process, None = the library's own default)."""
     if config.kind == "none" or config.window == 0:
         return NoBackend()
     if config.kind == "window-ba":
@@ -163,7 +164,7 @@ def make_backend(config: BackendConfig, K: np.ndarray | None = None, size_hw: tu
             raise ValueError("the window-ba back-end needs the working intrinsics K and size")
         from trianflow_vo.ba.backend import WindowBackend
 
-        return WindowBackend(config, K, size_hw, warn=warn)
+        return WindowBackend(config, K, size_hw, warn=warn, blas_threads=blas_threads)
     raise ValueError(f"unknown back-end {config.kind!r}; choose from: none, window-ba")
 
 

@@ -24,6 +24,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import cv2
+from threadpoolctl import threadpool_limits
 from trianflow_vo.backend import Backend, Trajectory, make_backend
 from trianflow_vo.camera import PinholeCamera, intrinsics_problem, working_size
 from trianflow_vo.config import Config, resolve_scale_source, write_config_yaml
@@ -116,7 +117,9 @@ def run(
     :class:`~trianflow_vo.io.run_writer.RunClock`) is the run's frame counter and
     frame rate, shared with e.g. a progress display.
     """
-    with InterruptSignals() as signals:
+    # BLAS threads spin-wait between NumPy's (small) products on the cores the flow thread and the
+    # back-end process need; held to runtime.blas_threads for the run, restored after it
+    with InterruptSignals() as signals, threadpool_limits(limits=config.runtime.blas_threads, user_api="blas"):
         return _run(Path(seq), Path(out_dir), config, list(observers), odometry_factory, backend, overwrite,
                     clock or RunClock(), signals)
 
@@ -147,7 +150,8 @@ def _run(seq: Path, out_dir: Path, config: Config, observers: list[Observer], od
         log.warning("depth.model is not used with scale.source=triangulation (scale from carried depth)")
     odo = (odometry_factory or make_odometry)(camera, config)
     runlog = RunLog()
-    backend = backend or make_backend(config.backend, camera.K, camera.size_hw, warn=runlog.warn)
+    backend = backend or make_backend(config.backend, camera.K, camera.size_hw, warn=runlog.warn,
+                                      blas_threads=config.runtime.blas_threads)
     gt = None
     if config.output.gt is not None:
         from trianflow_vo.eval import load_ground_truth

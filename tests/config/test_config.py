@@ -46,7 +46,7 @@ DEFAULTS = {
                 "anchor_min_links": 40, "anchor_max_parallax_px": 100.0, "anchor_max_zoom": 1.25,
                 "anchor_max_shared": 40, "anchor_gate_px": 20.0},
     "output": {"gt": None, "plot": True, "rerun": None, "rerun_spawn": False},
-    "runtime": {"threads": 2},
+    "runtime": {"threads": 2, "blas_threads": 1},
 }
 
 
@@ -180,6 +180,7 @@ def test_choice_range_and_type_errors():
         ({"sampling": {"top_ratio": 0}}, "sampling.top_ratio: 0 is out of range (0, 1]"),
         ({"sampling": {"n_samples": 99}}, "sampling.n_samples: 99 is out of range [100, 100000]"),
         ({"runtime": {"threads": 65}}, "runtime.threads: 65 is out of range [1, 64]"),
+        ({"runtime": {"blas_threads": 0}}, "runtime.blas_threads: 0 is out of range [1, 64]"),
         ({"input": {"stride": 0}}, "input.stride: 0 is out of range; must be >= 1"),
         ({"input": {"readout": -1.5}}, "input.readout: -1.5 is out of range [-1, 1]"),
         ({"backend": {"anchor_revisit_ratio": 1.5}}, "backend.anchor_revisit_ratio: 1.5 is out of range (0, 1]"),

@@ -151,12 +151,16 @@ class WindowBackend:
         K: ``(3, 3)`` intrinsics at working resolution.
         size_hw: working image size.
         warn: ``warn(kind, message, frame=index)`` for failures (the run log); None: the module logger only.
+        blas_threads: NumPy's BLAS threads in the worker process (``runtime.blas_threads``); None: the
+            library's default.
     """
 
     name = "window-ba"
 
-    def __init__(self, config: BackendConfig, K: np.ndarray, size_hw: tuple[int, int], warn: Warn | None = None):
+    def __init__(self, config: BackendConfig, K: np.ndarray, size_hw: tuple[int, int], warn: Warn | None = None,
+                 blas_threads: int | None = None):
         self.cfg = config
+        self.blas_threads = blas_threads
         self.K = np.asarray(K, dtype=np.float64)
         self.size_hw = (int(size_hw[0]), int(size_hw[1]))
         self.warn = warn
@@ -440,7 +444,7 @@ class WindowBackend:
 
             # spawn: the run has threads (frame prefetch, OpenCV) that a fork would copy mid-work
             self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
-                                             initializer=init_worker, initargs=(os.getpid(),))
+                                             initializer=init_worker, initargs=(os.getpid(), 1.0, self.blas_threads))
             self._pool.submit(warm_up)
         return self._pool
 

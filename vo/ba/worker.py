@@ -17,11 +17,16 @@ from trianflow_vo.ba.window import solve_window
 from trianflow_vo.resources import peak_rss_mb
 
 
-def init_worker(parent_pid: int | None = None, poll_s: float = 1.0) -> None:
+def init_worker(parent_pid: int | None = None, poll_s: float = 1.0, blas_threads: int | None = None) -> None:
     """Ctrl-C is the parent's: it stops the run and closes the worker itself. With ``parent_pid``,
     the worker also ends within ``poll_s`` seconds of its parent's death (a run killed with
-    SIGKILL cannot close it, and the worker would otherwise wait forever for the next window)."""
+    SIGKILL cannot close it, and the worker would otherwise wait forever for the next window).
+    With ``blas_threads``, NumPy's BLAS uses that many threads in this process (for its life)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if blas_threads is not None:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(limits=int(blas_threads), user_api="blas")
     if parent_pid is not None:
         threading.Thread(target=_exit_with_parent, args=(int(parent_pid), float(poll_s)), name="parent-watch",
                          daemon=True).start()
