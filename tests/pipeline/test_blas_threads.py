@@ -67,3 +67,19 @@ def test_the_backend_worker_process_starts_with_the_configured_blas_threads(blas
                              initargs=(None, 1.0, n)) as pool:
         info = pool.submit(threadpool_info).result(timeout=120)
     assert set(_blas_threads(info)) == {n}, info
+
+
+def test_run_json_names_the_blas_and_its_threads(sample_seq, tmp_path, blas_library):
+    import json
+
+    from trianflow_vo.pipeline import run
+
+    cfg = merge_dict(Config(), {"input": {"stride": 3, "end": 9}, "output": {"plot": False},
+                                "backend": {"window": 0}, "runtime": {"blas_threads": 1}}, "test")
+    with threadpool_limits(limits=2, user_api="blas"):
+        run(sample_seq, tmp_path / "out", cfg)
+    blas = json.loads((tmp_path / "out" / "run.json").read_text())["versions"]["blas"]
+    names = {lib["internal_api"] for lib in threadpool_info() if lib["user_api"] == "blas"}
+    # every BLAS loaded (NumPy's, and e.g. SciPy's own once imported), each held to the run's one thread
+    assert blas and all(b.endswith(", 1 thread(s)") for b in blas), blas
+    assert {b.split()[0] for b in blas} <= names

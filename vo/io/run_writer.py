@@ -57,10 +57,15 @@ def _fmt(v) -> str:
 
 
 def _versions() -> dict:
+    """Versions of what computes the poses; ``blas``: NumPy's BLAS libraries as the run uses them (name,
+    version, the CPU kernels chosen, threads), since the last bits of their sums can change a run."""
     import cv2
+    from threadpoolctl import threadpool_info
 
+    blas = [f"{i['internal_api']} {i.get('version')} ({i.get('architecture')}), {i['num_threads']} thread(s)"
+            for i in threadpool_info() if i["user_api"] == "blas"]
     return {"trianflow-vo": __version__, "python": platform.python_version(), "numpy": np.__version__,
-            "opencv": cv2.__version__}
+            "opencv": cv2.__version__, "blas": blas}
 
 
 class RunClock:
@@ -216,6 +221,7 @@ class RunWriter(Observer):
         self.frame_indices: list[int] = []
         self.timestamps: list[float | None] = []
         self._files: list[_LineFile] = []
+        self._versions: dict | None = None
         try:
             for name in self.FILES:
                 self._files.append(_LineFile(self.out_dir / name))
@@ -309,7 +315,9 @@ class RunWriter(Observer):
         }
 
     def _write_json(self, final: bool = False) -> None:
-        doc = {**self.info, "versions": _versions(), **self.summary()}
+        if self._versions is None:  # once: the libraries do not change during a run
+            self._versions = _versions()
+        doc = {**self.info, "versions": self._versions, **self.summary()}
         path = self.out_dir / "run.json"
         try:
             _write_file_atomic(path, json.dumps(doc, indent=2, default=str))
