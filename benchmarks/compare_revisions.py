@@ -77,9 +77,7 @@ def main() -> None:
             raise SystemExit(f"{args.rev} already uses the trianflow_vo layout; pick an earlier revision")
         rows = _alternate(args, tmp, lambda seq, extra: ([sys.executable, "-m", "cli.main", "run", seq, *extra], old),
                           lambda seq, extra: (["trianflow-vo", "run", seq, *extra], REPO))
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
-                              text=True).stdout.strip()
-        _write_md(args.md, f"Working tree (on {head}) against {args.rev}",
+        _write_md(args.md, f"Working tree (on {_head()}) against {args.rev}",
                   f"python benchmarks/compare_revisions.py --rev {args.rev} --repeats {args.repeats}", rows)
     finally:
         subprocess.run(["git", "worktree", "remove", "--force", str(old)], cwd=REPO, capture_output=True)
@@ -108,6 +106,12 @@ def _alternate(args, tmp: Path, old_cmd, new_cmd) -> list[tuple]:
     return rows
 
 
+def _head() -> str:
+    """This checkout's short commit."""
+    return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
+                          text=True).stdout.strip()
+
+
 def _write_md(path: Path | None, title: str, command: str, rows: list[tuple]) -> None:
     lines = [f"# {title}: poses and speed",
              "",
@@ -132,12 +136,10 @@ def _compare_args(args) -> None:
     try:
         rows = _alternate(args, tmp, lambda seq, extra: (["trianflow-vo", "run", seq, *extra, *old_extra], REPO),
                           lambda seq, extra: (["trianflow-vo", "run", seq, *extra, *new_extra], REPO))
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
-                              text=True).stdout.strip()
         cmd = f"python benchmarks/compare_revisions.py --old-args {shlex.quote(args.old_args)}"
         if args.new_args:
             cmd += f" --new-args {shlex.quote(args.new_args)}"
-        _write_md(args.md, f"Working tree (on {head}): `{args.new_args or 'defaults'}` against "
+        _write_md(args.md, f"Working tree (on {_head()}): `{args.new_args or 'defaults'}` against "
                   f"`{args.old_args}`", f"{cmd} --repeats {args.repeats}", rows)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -221,7 +221,7 @@ class RunWriter(Observer):
         self.frame_indices: list[int] = []
         self.timestamps: list[float | None] = []
         self._files: list[_LineFile] = []
-        self._versions: dict | None = None
+        self._versions = _versions()  # as the run starts: what computes its poses
         try:
             for name in self.FILES:
                 self._files.append(_LineFile(self.out_dir / name))
@@ -315,8 +315,6 @@ class RunWriter(Observer):
         }
 
     def _write_json(self, final: bool = False) -> None:
-        if self._versions is None:  # once: the libraries do not change during a run
-            self._versions = _versions()
         doc = {**self.info, "versions": self._versions, **self.summary()}
         path = self.out_dir / "run.json"
         try:
