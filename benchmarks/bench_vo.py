@@ -6,7 +6,7 @@ Runs both methods on the shared clips (KITTI 00 at stride 1 and 3, KITTI 06,
 branch counts, median ms per stage, frames/s (decoding included) and peak RSS.
 Every run is a separate subprocess, so peak RSS and timings are per run.
 
-The dense pipeline draws 6000 random matches per pair, so its accuracy varies
+The dense pipeline draws 12000 random matches per pair, so its accuracy varies
 with the seed: the table gives the median over ``--seeds`` (and the min-max).
 The sparse baseline uses every track (no random sampling) and is run once.
 

@@ -153,7 +153,7 @@ def _remove_if_empty(folder: Path | None, parent_existed: bool = True) -> None:
               help="Keyframes in the bundle-adjustment window; 0 = no back-end, the paper's pure two-view "
                    "pipeline [backend.window; 6].")
 @click.option("--samples", "n_samples", type=click.IntRange(100, 100000), default=None,
-              help="Matches drawn per frame pair [sampling.n_samples; 6000].")
+              help="Matches drawn per frame pair [sampling.n_samples; 12000].")
 @click.option("--seed", type=click.IntRange(min=0), default=None,
               help="Random seed; runs are reproducible [sampling.seed; 0].")
 @click.option("--gt", type=click.Path(path_type=Path), default=None,
