@@ -34,7 +34,7 @@ from trianflow_vo.flow.base import FlowSource
 from trianflow_vo.frame import Branch, FrameResult
 from trianflow_vo.frames import Frame, FrameSkip
 from trianflow_vo.io.calib import how_to_give_intrinsics
-from trianflow_vo.io.run_dir import InterruptSignals, open_run_dir, signal_name
+from trianflow_vo.io.run_dir import Interrupted, InterruptSignals, open_run_dir, signal_name
 from trianflow_vo.io.run_writer import RunClock, RunWriter, write_failed_status
 from trianflow_vo.io.sequence import Prefetcher, open_sequence
 from trianflow_vo.observer import Observer
@@ -212,8 +212,13 @@ def _run(seq: Path, out_dir: Path, config: Config, observers: list[Observer], od
                     runlog.warn("depth-contradicted", contradicted, frame=result.frame_index)
                 trajectory.add(result)
                 clock.frame_done()
-                for ob in all_obs:
-                    ob.on_frame(result)
+                # a frame's outputs are written whole: a Ctrl-C / SIGTERM that comes while they are is held
+                # until every observer has it (else frames.tsv could hold a row that run.json does not count)
+                with signals.deferred():
+                    for ob in all_obs:
+                        ob.on_frame(result)
+                if signals.pending is not None:
+                    raise Interrupted(signals.pending)
                 if result.is_keyframe:
                     _revise(backend.add_keyframe(odo.keyframe, result), trajectory, odo, all_obs)
         if reader.shortfall is not None:  # the video ended before the frame count its container states
