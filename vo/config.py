@@ -179,8 +179,8 @@ class SamplingConfig(_Section):
     """Which flow matches are drawn per frame pair."""
 
     NAME = "sampling"
-    n_samples: int = _opt(12000, "flow matches drawn per frame pair (12000: measured, seeds 0-11, better than "
-                                 "6000 on every shared clip and on KITTI 07 at ~12% of the speed; README, back-end)",
+    n_samples: int = _opt(12000, "flow matches drawn per frame pair (measured, seeds 0-11: 12000 better than 6000 "
+                                 "on 7-Scenes, KITTI 00, 06 and 07; README, back-end)",
                            range=_Range(100, 100000))
     top_ratio: float = _opt(0.2, "fraction of best-scored pixels the matches are drawn from",
                             range=_Range(0.0, 1.0, lo_open=True))
@@ -343,21 +343,24 @@ class BackendConfig(_Section):
                                       "handed-on keyframe), as a fraction of the window's median two-view step "
                                       "(or of its own length when larger)", range=_Range(0.0, lo_open=True))
     depth_correction: Literal["none", "affine", "shape", "scale"] = _opt(
-        "none", "correct the carried depth of the keyframe after an adjustment to the adjusted points seen in it: "
-                "shape = an affine map of inverse depth (a two-view step's small rotation error shifts all "
-                "inverse depths alike) with the median depth kept (the front-end's scale), affine = the same "
-                "map with its scale, scale = one factor, none = keep the front-end's depth (measured, seeds "
-                "0-11, with 12000 matches a step: none better than shape on KITTI 06 and 7-Scenes stride 3, "
-                "whose failed seeds shape's corrections made; with 6000 shape was the better; README, back-end)")
+        "shape", "correct the carried depth of the keyframe after an adjustment to the adjusted points seen in it: "
+                 "shape = an affine map of inverse depth (a two-view step's small rotation error shifts all "
+                 "inverse depths alike) with the median depth kept (the front-end's scale), affine = the same "
+                 "map with its scale, scale = one factor, none = keep the front-end's depth (measured, seeds "
+                 "0-11: shape better than none on KITTI 07 and, with 6000 matches, on 7-Scenes stride 3; affine "
+                 "worse on the unseen clips; README, back-end)")
     depth_correction_max: float = _opt(1.5, "an affine depth correction is refused for a scale-only one (shape: for "
                                             "none) when it would change the depth of the keyframe's tracks (2nd to "
                                             "98th percentile) by factors differing by more than this (larger ones "
                                             "rest on the few far points of a near scene)",
                                        range=_Range(1.0, lo_open=True))
-    depth_correction_t: float = _opt(3.0, "an affine or shape correction's offset of inverse depth is kept only when "
-                                          "it lies at least this many standard errors from zero (its fit's "
-                                          "residuals); else affine falls back to a rescale and shape makes none; "
-                                          "0 = off", range=_Range(0.0))
+    depth_correction_t: float = _opt(4.24, "an affine or shape correction's offset of inverse depth is kept only "
+                                           "when it lies at least this many standard errors from zero (its fit's "
+                                           "residuals); else affine falls back to a rescale and shape makes none; "
+                                           "0 = off. The standard error falls with the square root of the points "
+                                           "the fit finds front-end depth for, which grow with sampling.n_samples: "
+                                           "3 was measured at 6000 matches, 3 x sqrt(2) = 4.24 keeps that bar at "
+                                           "12000 (README, back-end)", range=_Range(0.0))
     depth_correction_min: float = _opt(0.1, "a depth correction is not applied when it would change no depth of the "
                                             "keyframe's tracks (2nd, 50th, 98th percentile) by more than this "
                                             "fraction (smaller ones are mostly the fit's noise; measured: README, "
