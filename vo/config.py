@@ -180,8 +180,8 @@ class SamplingConfig(_Section):
 
     NAME = "sampling"
     n_samples: int = _opt(12000, "flow matches drawn per frame pair (measured, seeds 0-11: 12000 instead of 6000 "
-                                 "takes 7-Scenes stride 3 from 1.58 to 1.18 % ATE, costs ~14 % of the frame "
-                                 "rate and TUM teddy some accuracy; README, back-end)",
+                                 "takes 7-Scenes stride 3 from 1.58 to 1.18 % ATE, costs ~10 % of the frame "
+                                 "rate and leaves one TUM teddy seed worse; README, back-end)",
                            range=_Range(100, 100000))
     top_ratio: float = _opt(0.2, "fraction of best-scored pixels the matches are drawn from",
                             range=_Range(0.0, 1.0, lo_open=True))

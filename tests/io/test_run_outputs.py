@@ -272,7 +272,6 @@ def test_sigterm_exception_closes_as_interrupted(sample_seq, tmp_path):
     assert doc["frames_processed"] == len(_lines(out / "poses.txt")) >= 1
 
 
-
 def test_a_signal_while_a_frame_is_written_lets_that_frame_finish(sample_seq, tmp_path, monkeypatch):
     """A Ctrl-C arriving while the writer writes a frame is held until the frame is in every output:
     run.json counts every row of frames.tsv and poses.txt (before, the signal could land between the
